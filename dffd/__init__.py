@@ -1,0 +1,3 @@
+"""dffd — depth-from-focus daemon."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,1 @@
+"""Estimation core: pure, synchronous, deterministic. No I/O in here."""
