@@ -49,8 +49,8 @@ class FrameSource(Protocol):
         """Open the device and begin delivering frames."""
         ...
 
-    async def next_frame(self, timeout: float) -> Frame:
-        """Return the next frame; raise :class:`FrameTimeoutError` after ``timeout`` seconds."""
+    async def next_frame(self) -> Frame:
+        """Return the next frame (callers bound the wait with ``asyncio.timeout``)."""
         ...
 
     async def close(self) -> None:
