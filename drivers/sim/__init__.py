@@ -1,0 +1,1 @@
+"""Simulated camera: VISCA device, world, optics renderer and frame source."""
