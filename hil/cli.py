@@ -1,0 +1,131 @@
+"""``python -m hil``: run a scenario, run the performance bench, or compare two reports.
+
+Exit codes as ``dffd``: 0 ok, 1 runtime failure or (compare) a regression, 2 usage error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+DEFAULT_OUT = Path("hil/out")
+
+logger = logging.getLogger(__name__)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m hil``."""
+    from hil.scenario import SCENARIO_NAMES
+
+    parser = argparse.ArgumentParser(
+        prog="python -m hil",
+        description="dffd hardware-in-the-loop bench: accuracy scenarios, performance, compare.",
+        epilog="Exit codes: 0 ok, 1 failure or regression, 2 usage error.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    run = sub.add_parser(
+        "run",
+        help="run a scenario and write report.json + plots",
+        description="Run a scenario. --fast: simulator, scheduler and core in lock-step "
+        "virtual time. Default: the real daemon against the simulated camera over a pty, "
+        "scored over MQTT. With --camera/--video/--truth: the real camera on the lab bench.",
+    )
+    run.add_argument(
+        "scenario", help=f"scenario name ({', '.join(SCENARIO_NAMES)}) or a .toml path"
+    )
+    run.add_argument(
+        "--out", type=Path, default=None, help="output directory (default hil/out/SCENARIO)"
+    )
+    run.add_argument("--fast", action="store_true", help="lock-step virtual time (no waiting)")
+    run.add_argument("--record", action="store_true", help="also write a recording (DESIGN §7)")
+    run.add_argument(
+        "--duration", type=float, default=None, help="override the per-case duration (s)"
+    )
+    run.add_argument("--seed", type=int, action="append", default=None, help="override the seeds")
+    run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    run.add_argument("--no-baselines", action="store_true", help="skip the ArUco/full-sweep passes")
+    run.add_argument("--config", type=Path, default=None, help="daemon config (real-time modes)")
+    run.add_argument("--camera", default=None, help="lab: real camera, e.g. serial:/dev/ttyUSB0")
+    run.add_argument("--video", default=None, help="lab: video device, e.g. /dev/video0")
+    run.add_argument("--truth", type=Path, default=None, help="lab: ground-truth CSV (t_s,z_m)")
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    bench = sub.add_parser(
+        "bench",
+        help="performance bench (DESIGN §8): CPU, replay, depth rate, latency, serial",
+    )
+    bench.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
+    bench.add_argument("--quick", action="store_true", help="shorter runs (smoke test)")
+
+    compare = sub.add_parser("compare", help="compare two reports; exit 1 on a regression")
+    compare.add_argument("a", type=Path, help="reference report.json (or its directory)")
+    compare.add_argument("b", type=Path, help="new report.json (or its directory)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` and run; return the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        if args.command == "compare":
+            from hil.compare import main as compare_main
+
+            return compare_main(args.a, args.b)
+        if args.command == "bench":
+            from hil.benchmarks import run_bench
+
+            return run_bench(args.out, quick=args.quick)
+        return _run(args)
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    except ValueError as exc:  # scenario/report/config errors carry a user-facing message
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+def _run(args: argparse.Namespace) -> int:
+    from hil.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    if args.duration is not None:
+        scenario = scenario.shortened(args.duration)
+    if args.seed:
+        scenario = scenario.model_copy(update={"seeds": tuple(args.seed)})
+    out = args.out or DEFAULT_OUT / scenario.name
+    lab = any(x is not None for x in (args.camera, args.video, args.truth))
+    if lab and args.fast:
+        print("error: --fast runs the simulator; drop --camera/--video/--truth", file=sys.stderr)
+        return EXIT_USAGE
+    if lab and (args.camera is None or args.video is None):
+        print(
+            "error: the lab mode needs both --camera serial:PORT and --video DEV", file=sys.stderr
+        )
+        return EXIT_USAGE
+    from hil.runner import RunOptions, run_scenario
+
+    options = RunOptions(
+        out_dir=out,
+        fast=args.fast,
+        record=args.record,
+        plots=not args.no_plots,
+        baselines=not args.no_baselines,
+        progress=not args.no_progress,
+        daemon_config=args.config,
+        camera=args.camera,
+        video=args.video,
+        truth_csv=args.truth,
+    )
+    return run_scenario(scenario, options)

@@ -1,0 +1,495 @@
+"""``report.json`` and the PNG plots of a bench run (DESIGN §7 summary shape, §9 report keys).
+
+The per-estimator block has the shape of ``dffd replay``'s summary (n, bias_m, std_m, rms_m,
+ss_std_m, p95_abs_m) so one reader serves both; the bench adds ``ss_bias_m`` and ``ss_rms_m``.
+Several sessions (cases × seeds) are pooled: each contributes its own steady state (after its own
+settling time).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import math
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.results import FloatArray, RunResult
+
+logger = logging.getLogger(__name__)
+
+REPORT_SCHEMA = 1
+BASELINE_KEYS = ("known_size", "aruco", "full_sweep")
+# Parabola panels drawn from the sample bursts (spread over the run).
+SAMPLE_BURSTS = 6
+# git describe must answer at once; a missing git only drops the "git" field.
+GIT_TIMEOUT_S = 5.0
+
+
+def summary_stats(t: FloatArray, err: FloatArray, settle_t: FloatArray) -> dict[str, Any]:
+    """Error summary of DESIGN §7 over samples ``err`` at ``t``; steady state where t ≥ settle_t.
+
+    ``settle_t`` is per sample (pooled sessions each settle from their own start).
+    """
+    ok = np.isfinite(err) & np.isfinite(t)
+    e = err[ok]
+    ss = e[t[ok] >= settle_t[ok]]
+    out: dict[str, Any] = {"n": int(e.size)}
+    out.update(_moments(e, ""))
+    out["ss_n"] = int(ss.size)
+    ssm = _moments(ss, "")
+    out["ss_bias_m"] = ssm["bias_m"]
+    out["ss_std_m"] = ssm["std_m"]
+    out["ss_rms_m"] = ssm["rms_m"]
+    out["ss_p95_abs_m"] = ssm["p95_abs_m"]
+    # canonical key order of the §7 block first
+    keys = ("n", "bias_m", "std_m", "rms_m", "ss_std_m", "p95_abs_m")
+    return {k: out[k] for k in keys} | {k: v for k, v in out.items() if k not in keys}
+
+
+def series_summary(results: Sequence[RunResult], pick: str, name: str) -> dict[str, Any] | None:
+    """Pooled summary of estimate (``pick="estimates"``) or baseline series ``name``."""
+    ts, errs, settles = [], [], []
+    for res in results:
+        table = res.estimates if pick == "estimates" else res.baselines
+        series = table.get(name)
+        if series is None or len(series) == 0:
+            continue
+        t, v, truth = series.arrays()
+        ts.append(t - res.t_start)
+        errs.append(v - truth)
+        settles.append(np.full(t.shape, res.settle_s))
+    if not ts:
+        return None
+    return summary_stats(np.concatenate(ts), np.concatenate(errs), np.concatenate(settles))
+
+
+def build_report(
+    results: Sequence[RunResult],
+    scenario: str,
+    thresholds: dict[str, float | None] | None = None,
+    bench: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The ``report.json`` document for the sessions of one scenario run."""
+    if not results:
+        raise ValueError("no sessions to report")
+    first = results[0]
+    est_names = sorted({n for r in results for n in r.estimates})
+    estimators = {n: s for n in est_names if (s := series_summary(results, "estimates", n))}
+    baselines: dict[str, Any] = {}
+    for key in BASELINE_KEYS:
+        baselines[key] = series_summary(results, "baselines", key)
+    duration = sum(r.duration_s for r in results)
+    accepted = sum(r.accepted_bursts for r in results)
+    rejected = sum(len(r.bursts) - r.accepted_bursts for r in results)
+    depth_hz = accepted / duration if duration > 0 else 0.0
+    limit = _mean([r.depth_limit_hz for r in results])
+    sweep_hz = _mean([r.full_sweep_depth_hz for r in results])
+    rates: dict[str, Any] = {
+        "depth_hz": depth_hz,
+        "depth_limit_hz": limit,
+        "depth_rate_ratio": depth_hz / limit if limit else None,
+        "full_sweep_depth_hz": sweep_hz,
+        "sweep_rate_ratio": depth_hz / sweep_hz if sweep_hz else None,
+        "frame_hz": sum(r.frames for r in results) / duration if duration > 0 else 0.0,
+        "frames_by_role": _sum_dicts([r.frames_by_role for r in results]),
+    }
+    cpu_ms = np.asarray([c for r in results for c in r.core_cpu_s], dtype=np.float64) * 1e3
+    wall = sum(r.wall_s for r in results)
+    cpu: dict[str, Any] = {
+        "core_ms_per_frame_mean": _f(cpu_ms.mean()) if cpu_ms.size else None,
+        "core_ms_per_frame_p95": _f(np.percentile(cpu_ms, 95)) if cpu_ms.size else None,
+        "wall_s": wall,
+        "scenario_s": duration,
+        "speedup_vs_real_time": duration / wall if wall > 0 else None,
+    }
+    lat_ms = np.asarray([x for r in results for x in r.latency_s], dtype=np.float64) * 1e3
+    latency = (
+        {
+            "n": int(lat_ms.size),
+            "p50_ms": _f(np.percentile(lat_ms, 50)),
+            "p99_ms": _f(np.percentile(lat_ms, 99)),
+            "max_ms": _f(lat_ms.max()),
+        }
+        if lat_ms.size
+        else None
+    )
+    best = first.best
+    report: dict[str, Any] = {
+        "schema": REPORT_SCHEMA,
+        "scenario": scenario,
+        "mode": first.mode,
+        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "git": _git_describe(),
+        "duration_s": duration,
+        "settle_s": first.settle_s,
+        "sessions": [{"case": r.case, "seed": r.seed, "duration_s": r.duration_s} for r in results],
+        "best": best,
+        "estimators": estimators,
+        "baselines": baselines,
+        "bursts": {"accepted": accepted, "rejected": rejected},
+        "rates": rates,
+        "latency": latency,
+        "cpu": cpu,
+        "per_case": _per_case(results),
+        "notes": sorted({n for r in results for n in r.notes}),
+    }
+    report["goals"] = evaluate_goals(report, thresholds or {})
+    if bench is not None:
+        report["bench"] = bench
+    return report
+
+
+def evaluate_goals(report: dict[str, Any], thresholds: dict[str, float | None]) -> list[Any]:
+    """The issue's accuracy and rate goals, each with its value, limit and verdict."""
+    goals: list[dict[str, Any]] = []
+    est = report["estimators"]
+    best = est.get(report["best"])
+    measured = est.get("measured")
+
+    def add(name: str, value: float | None, limit: float | None, ok: bool | None) -> None:
+        goals.append({"goal": name, "value": value, "limit": limit, "ok": ok})
+
+    if best is not None and (lim := thresholds.get("ss_std_max_m")) is not None:
+        v = best["ss_std_m"]
+        add(f"{report['best']} ss_std_m < limit", v, lim, _lt(v, lim))
+    if best is not None and measured is not None:
+        lim = thresholds.get("ss_std_vs_measured_max")
+        if lim is not None:
+            ratio = _ratio(best["ss_std_m"], measured["ss_std_m"])
+            add(f"{report['best']} ss_std / measured ss_std ≤ limit", ratio, lim, _le(ratio, lim))
+    if "lpv" in est and "cf2" in est:
+        a, b = est["lpv"]["ss_std_m"], est["cf2"]["ss_std_m"]
+        add("lpv ss_std_m ≤ cf2 ss_std_m", a, b, _le(a, b))
+    rates = report["rates"]
+    if (lim := thresholds.get("sweep_rate_ratio_min")) is not None:
+        r = rates.get("sweep_rate_ratio")
+        add("depth_hz / full_sweep_depth_hz ≥ limit", r, lim, None if r is None else r >= lim)
+    sweep = report["baselines"].get("full_sweep")
+    if sweep is not None and measured is not None:
+        # "at no worse accuracy": raw z_m against the sweep's depths, both steady state.
+        a, b = measured["ss_rms_m"], sweep["ss_rms_m"]
+        add("measured ss_rms_m ≤ full_sweep ss_rms_m", a, b, _le(a, b))
+    return goals
+
+
+def write_report(report: dict[str, Any], out_dir: Path) -> Path:
+    """Write ``report.json`` into ``out_dir``; return its path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "report.json"
+    path.write_text(json.dumps(_clean(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    return path
+
+
+def load_report(path: Path) -> dict[str, Any]:
+    """Read a ``report.json`` (or a directory holding one)."""
+    if path.is_dir():
+        path = path / "report.json"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ValueError(
+            f"cannot read report {path}: {exc}; run `python -m hil run` first"
+        ) from exc
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"report {path} is not valid JSON: {exc}") from exc
+    if not isinstance(data, dict) or "estimators" not in data:
+        raise ValueError(f"{path} is not a bench report (no 'estimators' block)")
+    return data
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """A plain-text table of the report (printed after a run, pasted into hil/README.md)."""
+    rows = [("estimator", "n", "bias mm", "std mm", "rms mm", "ss std mm", "p95 mm")]
+    items = [(k, v) for k, v in report["estimators"].items()]
+    items += [(f"baseline:{k}", v) for k, v in report["baselines"].items() if v]
+    for name, s in items:
+        rows.append(
+            (
+                name + (" (best)" if name == report["best"] else ""),
+                str(s["n"]),
+                _mm(s["bias_m"]),
+                _mm(s["std_m"]),
+                _mm(s["rms_m"]),
+                _mm(s["ss_std_m"]),
+                _mm(s["p95_abs_m"]),
+            )
+        )
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = [
+        "  ".join(
+            c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))
+        )
+        for r in rows
+    ]
+    rates = report["rates"]
+    lines.append("")
+    lines.append(
+        "depth rate {:.2f} Hz (limit {}, ratio {}); full sweep {} Hz (dffd/sweep {})".format(
+            rates["depth_hz"],
+            _num(rates["depth_limit_hz"], "{:.2f}"),
+            _num(rates["depth_rate_ratio"], "{:.2f}"),
+            _num(rates["full_sweep_depth_hz"], "{:.3f}"),
+            _num(rates["sweep_rate_ratio"], "{:.1f}×"),
+        )
+    )
+    cpu = report["cpu"]
+    lines.append(
+        "core CPU {} ms/frame (p95 {}); {:.0f} s of scenario in {:.1f} s wall".format(
+            _num(cpu["core_ms_per_frame_mean"], "{:.2f}"),
+            _num(cpu["core_ms_per_frame_p95"], "{:.2f}"),
+            cpu["scenario_s"],
+            cpu["wall_s"],
+        )
+    )
+    if report.get("latency"):
+        lat = report["latency"]
+        lines.append(
+            f"exposure→MQTT latency p50 {lat['p50_ms']:.1f} ms, p99 {lat['p99_ms']:.1f} ms"
+        )
+    for g in report.get("goals", []):
+        verdict = {True: "PASS", False: "FAIL", None: "n/a"}[g["ok"]]
+        lines.append(
+            f"[{verdict}] {g['goal']}: {_num(g['value'], '{:.4g}')} vs {_num(g['limit'], '{:.4g}')}"
+        )
+    return "\n".join(lines)
+
+
+def write_plots(results: Sequence[RunResult], out_dir: Path) -> list[Path]:
+    """Depth vs truth, error over time, β̂, R̂ and sample cost parabolas, one PNG each."""
+    import matplotlib as mpl
+
+    mpl.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    for res in results:
+        stem = f"{res.case}-s{res.seed}" if len(results) > 1 else res.case
+        paths += _plot_session(plt, res, out_dir, stem)
+    return paths
+
+
+# -- private -------------------------------------------------------------------------------------
+
+
+def _plot_session(plt: Any, res: RunResult, out_dir: Path, stem: str) -> list[Path]:
+    paths: list[Path] = []
+    t0 = res.t_start
+
+    def save(fig: Any, name: str) -> None:
+        path = out_dir / f"{stem}-{name}.png"
+        fig.tight_layout()
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+
+    # depth vs truth
+    fig, ax = plt.subplots(figsize=(10, 5))
+    truth_t, truth_z = _truth_curve(res)
+    ax.plot(truth_t - t0, truth_z, "k-", lw=2, label="truth")
+    for name, s in sorted(res.estimates.items()):
+        t, v, _ = s.arrays()
+        if name == "measured":
+            ax.plot(t - t0, v, "r.", ms=3, label="z_m (measured)")
+        else:
+            ax.plot(t - t0, v, lw=1, label=name + (" (best)" if name == res.best else ""))
+    for name, s in sorted(res.baselines.items()):
+        t, v, _ = s.arrays()
+        ax.plot(t - t0, v, "x", ms=3, alpha=0.6, label=f"baseline {name}")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("depth (m)")
+    ax.set_title(f"{res.scenario} / {res.case} (seed {res.seed}): depth")
+    ax.legend(fontsize=7, ncol=3)
+    save(fig, "depth")
+
+    # error over time
+    fig, ax = plt.subplots(figsize=(10, 5))
+    for name, s in sorted(res.estimates.items()):
+        t, v, truth = s.arrays()
+        style = "r." if name == "measured" else "-"
+        ax.plot(t - t0, (v - truth) * 1e3, style, ms=3, lw=1, label=name)
+    ax.axvline(res.settle_s, color="gray", ls="--", lw=1, label="settled")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("error (mm)")
+    lim = _robust_ylim(res)
+    if lim is not None:
+        ax.set_ylim(-lim, lim)
+    ax.set_title("depth error (estimate − truth)")
+    ax.legend(fontsize=7, ncol=3)
+    save(fig, "error")
+
+    # bias estimate and size estimate
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    if len(res.beta):
+        t, v, _ = res.beta.arrays()
+        ax1.plot(t - t0, v, lw=1)
+    ax1.set_ylabel("β̂ (m/s)")
+    ax1.set_title("CF2 bias estimate β̂ and size estimate R̂")
+    if len(res.size):
+        t, v, truth = res.size.arrays()
+        ax2.plot(t - t0, v * 1e3, lw=1, label="R̂")
+        ax2.plot(t - t0, truth * 1e3, "k--", lw=1, label="true R")
+        ax2.legend(fontsize=7)
+    ax2.set_ylabel("size (mm)")
+    ax2.set_xlabel("t (s)")
+    save(fig, "bias-size")
+
+    # sample cost parabolas
+    sample = _sample_bursts(res)
+    if sample:
+        cols = 3
+        rows = math.ceil(len(sample) / cols)
+        fig, axes = plt.subplots(rows, cols, figsize=(10, 3.2 * rows), squeeze=False)
+        for ax, b in zip(axes.flat, sample, strict=False):
+            x = np.asarray(b.v0_mm)
+            ax.plot(x, b.cost, "bo")
+            if b.coeffs is not None:
+                lo, hi = float(x.min()), float(x.max())
+                pad = 0.5 * (hi - lo)
+                xs = np.linspace(lo - pad, hi + pad, 100)
+                a2, a1, a0 = b.coeffs
+                ax.plot(xs, a2 * xs**2 + a1 * xs + a0, "b-", lw=1)
+            if b.v_hat_mm is not None:
+                ax.axvline(b.v_hat_mm, color="b", ls=":", lw=1, label="v̂")
+            if b.truth_v_mm is not None:
+                ax.axvline(b.truth_v_mm, color="k", ls="--", lw=1, label="true v")
+            verdict = "ok" if b.accepted else f"rejected: {b.reason}"
+            ax.set_title(f"t={b.t - t0:.1f} s z={b.truth_z_m:.2f} m {verdict}", fontsize=7)
+            ax.set_xlabel("v0 (mm)", fontsize=7)
+            ax.tick_params(labelsize=6)
+        for ax in list(axes.flat)[len(sample) :]:
+            ax.axis("off")
+        axes.flat[0].legend(fontsize=6)
+        save(fig, "parabolas")
+    return paths
+
+
+def _truth_curve(res: RunResult) -> tuple[FloatArray, FloatArray]:
+    pools = [s for s in res.estimates.values() if len(s)] + [
+        s for s in res.baselines.values() if len(s)
+    ]
+    if not pools:
+        return np.zeros(0), np.zeros(0)
+    longest = max(pools, key=len)
+    t, _, truth = longest.arrays()
+    order = np.argsort(t)
+    return t[order], truth[order]
+
+
+def _robust_ylim(res: RunResult) -> float | None:
+    errs = []
+    for s in res.estimates.values():
+        t, v, truth = s.arrays()
+        e = (v - truth)[(t - res.t_start) >= res.settle_s] * 1e3
+        errs.append(e[np.isfinite(e)])
+    if not errs or not any(e.size for e in errs):
+        return None
+    pooled = np.abs(np.concatenate(errs))
+    return float(2.0 * np.percentile(pooled, 99)) + 1.0
+
+
+def _sample_bursts(res: RunResult) -> list[Any]:
+    if not res.bursts:
+        return []
+    rejected = [b for b in res.bursts if not b.accepted][:1]
+    idx = np.linspace(0, len(res.bursts) - 1, SAMPLE_BURSTS - len(rejected)).astype(int)
+    picked = [res.bursts[i] for i in sorted(set(idx.tolist()))]
+    return picked + rejected
+
+
+def _per_case(results: Sequence[RunResult]) -> dict[str, Any]:
+    cases = sorted({r.case for r in results})
+    if len(cases) < 2:
+        return {}
+    out: dict[str, Any] = {}
+    for case in cases:
+        rs = [r for r in results if r.case == case]
+        names = sorted({n for r in rs for n in r.estimates})
+        out[case] = {
+            "estimators": {n: s for n in names if (s := series_summary(rs, "estimates", n))},
+            "baselines": {k: series_summary(rs, "baselines", k) for k in BASELINE_KEYS},
+            "depth_hz": sum(r.accepted_bursts for r in rs) / sum(r.duration_s for r in rs),
+        }
+    return out
+
+
+def _moments(e: FloatArray, _prefix: str) -> dict[str, float | None]:
+    if e.size == 0:
+        return {"bias_m": None, "std_m": None, "rms_m": None, "p95_abs_m": None}
+    return {
+        "bias_m": _f(e.mean()),
+        "std_m": _f(e.std()),
+        "rms_m": _f(np.sqrt(np.mean(e**2))),
+        "p95_abs_m": _f(np.percentile(np.abs(e), 95)),
+    }
+
+
+def _mean(values: Sequence[float | None]) -> float | None:
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    return sum(vals) / len(vals) if vals else None
+
+
+def _sum_dicts(ds: Sequence[dict[str, int]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for d in ds:
+        for k, v in d.items():
+            out[k] = out.get(k, 0) + v
+    return out
+
+
+def _f(x: Any) -> float:
+    return float(x)
+
+
+def _lt(a: float | None, b: float | None) -> bool | None:
+    return None if a is None or b is None else a < b
+
+
+def _le(a: float | None, b: float | None) -> bool | None:
+    return None if a is None or b is None else a <= b
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None or b == 0 else a / b
+
+
+def _mm(x: float | None) -> str:
+    return "-" if x is None else f"{x * 1e3:.1f}"
+
+
+def _num(x: float | None, fmt: str) -> str:
+    return "-" if x is None else fmt.format(x)
+
+
+def _clean(obj: Any) -> Any:
+    """Replace NaN/inf by None so the JSON is strict."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.floating | np.integer):
+        return _clean(obj.item())
+    return obj
+
+
+def _git_describe() -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "describe", "--always", "--dirty"],  # noqa: S607 - git from PATH on purpose
+            capture_output=True,
+            text=True,
+            timeout=GIT_TIMEOUT_S,
+            check=False,
+            cwd=Path(__file__).parent,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return out.stdout.strip() or None

@@ -1,0 +1,160 @@
+"""Typed scenario files (``hil/scenarios/*.toml``): what the bench runs and how it scores it.
+
+A scenario names a target, a trajectory, the simulated camera's parameters, the seeds, and the
+baselines to run. Coordinates are the camera frame at pan = tilt = 0 (OpenCV convention: x right,
+y down, z forward, metres); the camera's pan/tilt head sits at the origin. A scenario may hold
+several *cases* (e.g. static targets at several depths): each case overrides trajectory keys and
+runs as its own session (fresh simulator and estimator), and the report pools them.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+SCENARIO_DIR = Path(__file__).parent / "scenarios"
+SCENARIO_NAMES = ("static", "approach", "paper-circle", "figure-eight", "random")
+
+
+class ScenarioError(ValueError):
+    """A scenario is missing, not valid TOML, or violates the schema; the message says which."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class TargetSpec(_Model):
+    """The planar target the simulator renders."""
+
+    shape: Literal["disc", "polygon", "textured", "aruco"] = "disc"
+    size_m: float = Field(0.03576, gt=0.0, le=2.0)  # R = sqrt(tr Σ) of the boundary
+    # Given to CF1 and the known-size baseline only; the unknown-size estimators never see it.
+    known_size_m: float | None = Field(None, gt=0.0)
+    rotation_dps: float = 0.0  # spin about the optical axis, degrees per second
+
+
+class TrajectorySpec(_Model):
+    """A target trajectory; which keys matter depends on ``kind``."""
+
+    kind: Literal["static", "linear", "circle", "figure-eight", "random"]
+    position_m: tuple[float, float, float] = (0.0, 0.0, 5.0)  # static; start of linear
+    end_m: tuple[float, float, float] = (0.0, 0.0, 2.0)  # linear: end point (then it stops)
+    center_m: tuple[float, float, float] = (0.0, 0.0, 6.0)  # circle / figure-eight / random
+    radius_m: float = Field(4.0, gt=0.0)  # circle radius; figure-eight half-extent
+    speed_mps: float = Field(0.25, ge=0.0, le=5.0)  # path speed (random: mean speed)
+    phase_deg: float = 0.0  # circle / figure-eight start phase
+    extent_m: tuple[float, float, float] = (2.0, 0.3, 3.0)  # random: half-box around center
+
+
+class CameraSpec(_Model):
+    """Simulated-camera parameters the scenario sets on top of ``config/sim-camera.toml``."""
+
+    config: str = "config/sim-camera.toml"  # relative to the repository root
+    lens: str = "config/lenses/sim-evi-d100.toml"  # what the estimator is told (the lens table)
+    fps: float = Field(30.0, gt=0.0, le=120.0)
+    read_noise_dn: float = Field(2.0, ge=0.0)
+    capture_latency_frames: int = Field(1, ge=0, le=10)
+    focus_jitter_counts: float = Field(0.0, ge=0.0)
+    motion_blur: bool = False
+    # Extra keys handed verbatim to the simulator's config (names as in drivers/sim/config.py).
+    overrides: dict[str, Any] = Field(default_factory=dict)
+
+
+class BaselineSpec(_Model):
+    """Which baselines run, and how."""
+
+    known_size: bool = True
+    aruco: bool = True
+    full_sweep: bool = True
+    # Classic depth from focus: settings spread evenly over the focus range in each sweep.
+    full_sweep_settings: int = Field(16, ge=5, le=64)
+    # The ArUco and full-sweep passes need their own frames; cap their length to keep runs short.
+    max_pass_s: float = Field(60.0, gt=0.0)
+
+
+class ThresholdSpec(_Model):
+    """Goals checked in the report (DESIGN §8, issue 6)."""
+
+    ss_std_max_m: float | None = None  # best estimator's steady-state std must be below this
+    ss_std_vs_measured_max: float | None = None  # … and at most this fraction of raw z_m's
+    sweep_rate_ratio_min: float | None = None  # depth_hz / full_sweep_depth_hz at least this
+
+
+class CaseSpec(_Model):
+    """One session of a multi-case scenario: a name and trajectory keys to override."""
+
+    name: str
+    trajectory: dict[str, Any] = Field(default_factory=dict)
+
+
+class Scenario(_Model):
+    """A validated scenario file."""
+
+    name: str
+    description: str = ""
+    duration_s: float = Field(gt=0.0, le=3600.0)  # per case
+    settle_s: float = Field(5.0, ge=0.0)  # steady state starts this long after the start
+    seeds: tuple[int, ...] = (1,)
+    target: TargetSpec = Field(default_factory=TargetSpec)
+    trajectory: TrajectorySpec
+    camera: CameraSpec = Field(default_factory=CameraSpec)
+    baselines: BaselineSpec = Field(default_factory=BaselineSpec)
+    thresholds: ThresholdSpec = Field(default_factory=ThresholdSpec)
+    cases: tuple[CaseSpec, ...] = ()
+
+    @model_validator(mode="after")
+    def _check(self) -> Scenario:
+        if not self.seeds:
+            raise ValueError("seeds must list at least one seed")
+        if self.settle_s >= self.duration_s:
+            raise ValueError(f"settle_s ({self.settle_s}) must be below duration_s")
+        for case in self.cases:
+            self.trajectory.model_copy(update=case.trajectory)  # keys checked in expand()
+        return self
+
+    def expand(self) -> list[tuple[str, TrajectorySpec]]:
+        """The sessions to run: ``[(case name, trajectory)]`` (one unnamed case if none given)."""
+        if not self.cases:
+            return [(self.name, self.trajectory)]
+        out = []
+        for case in self.cases:
+            merged = self.trajectory.model_dump() | case.trajectory
+            try:
+                out.append((case.name, TrajectorySpec.model_validate(merged)))
+            except ValidationError as exc:
+                raise ScenarioError(f"scenario {self.name} case {case.name}: {exc}") from exc
+        return out
+
+    def shortened(self, duration_s: float) -> Scenario:
+        """A copy running ``duration_s`` per case (settling scaled down to fit), for smoke tests."""
+        settle = min(self.settle_s, 0.5 * duration_s)
+        return self.model_copy(update={"duration_s": duration_s, "settle_s": settle})
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load a scenario by name (``hil/scenarios/NAME.toml``) or by path."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = SCENARIO_DIR / f"{name_or_path}.toml"
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        known = ", ".join(available_scenarios())
+        raise ScenarioError(
+            f"no scenario {name_or_path!r} (looked for {path}); known scenarios: {known}"
+        ) from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"scenario file {path} is not valid TOML: {exc}") from exc
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as exc:
+        raise ScenarioError(f"scenario file {path} is invalid: {exc}") from exc
+
+
+def available_scenarios() -> list[str]:
+    """Names of the scenario files shipped in ``hil/scenarios``."""
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
