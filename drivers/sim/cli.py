@@ -1,0 +1,101 @@
+"""``dffd sim-camera``: serve the simulated VISCA camera on a pseudo-terminal.
+
+Prints the device path (the ``--link`` symlink, else the pty slave) as the first line of stdout,
+serves until SIGTERM or SIGINT, then exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+
+from drivers.sim.device import DeviceConfig
+from drivers.sim.faults import Faults, FaultSpecError
+from drivers.sim.server import SimCameraServer
+
+logger = logging.getLogger(__name__)
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the sim-camera options to ``parser``."""
+    parser.add_argument(
+        "--link",
+        metavar="PATH",
+        help="also create a symlink PATH to the pty (stable across port close/reopen faults)",
+    )
+    parser.add_argument(
+        "--baud", type=int, default=9600, help="baud rate whose wire time is modelled (9600)"
+    )
+    parser.add_argument(
+        "--no-pace",
+        action="store_true",
+        help="answer as fast as possible instead of pacing bytes at --baud (10 bits per byte)",
+    )
+    parser.add_argument(
+        "--faults",
+        metavar="SPEC",
+        default="",
+        help='seeded fault injection, e.g. "seed=3,drop=0.01,lose_completion=0.05" '
+        "(keys: seed drop corrupt duplicate delay=P[:S] lose_completion garbage "
+        "network_change_every power_cycle_every power_off close_port_every close_port_for "
+        "direction)",
+    )
+    parser.add_argument(
+        "--address",
+        type=int,
+        default=1,
+        choices=range(1, 8),
+        metavar="N",
+        help="position of the camera in the daisy chain, 1–7 (its address after Address Set)",
+    )
+    parser.add_argument(
+        "--reply-from-a0",
+        action="store_true",
+        help="firmware quirk: send replies with header A0 instead of 90 (driver tests)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve until SIGTERM/SIGINT; return the exit code."""
+    try:
+        faults = Faults(args.faults)
+        config = DeviceConfig(
+            address=args.address,
+            baud=args.baud,
+            pace=not args.no_pace,
+            reply_from_a0=args.reply_from_a0,
+        )
+    except FaultSpecError as exc:
+        print(f"dffd sim-camera: --faults: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except ValueError as exc:
+        print(f"dffd sim-camera: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return asyncio.run(_serve(config, faults, args.link))
+    except OSError as exc:
+        print(
+            f"dffd sim-camera: cannot serve the pty ({exc}); check --link is a writable path",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+
+
+async def _serve(config: DeviceConfig, faults: Faults, link: str | None) -> int:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, stop.set)
+    async with SimCameraServer(config, faults=faults, link_path=link) as server:
+        sys.stdout.write(f"{server.path}\n")
+        sys.stdout.flush()
+        logger.info("sim camera %s on %s, faults: %s", config, server.path, faults.spec)
+        await stop.wait()
+    return EXIT_OK

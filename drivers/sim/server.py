@@ -1,0 +1,344 @@
+"""Transports for the simulated camera: a real pseudo-terminal, and an in-process form for tests.
+
+:class:`SimCameraServer` serves a :class:`~drivers.sim.device.ViscaDevice` on a pty that pyserial
+opens exactly like hardware (both ends raw, the master non-blocking and read with
+``loop.add_reader``). With ``link_path`` it keeps a stable symlink to the pty slave, so closing and
+reopening the port looks like a USB adapter unplugged and re-plugged under a udev name.
+
+:class:`InProcessCamera` drives the same device in virtual time: feed bytes, advance the clock,
+collect what the camera sent and when.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import time
+import tty
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+from drivers.sim.device import DeviceConfig, Emission, VirtualClock, ViscaDevice
+from drivers.sim.faults import Faults, FaultSpec
+from drivers.sim.state import CameraState
+from drivers.visca import codec
+
+logger = logging.getLogger(__name__)
+
+READ_CHUNK = 4096  # bytes per os.read of the pty master; more than a second of 9600 baud
+# Bytes the pty would not take yet (nobody reads the slave). A real UART sends into the void; we
+# keep a little and then drop the oldest, so a stalled reader cannot make the server grow.
+TX_BACKLOG_MAX_BYTES = 8192
+
+
+class SimCameraServer:
+    """The simulated camera on a real pty; use as ``async with SimCameraServer(...) as server``."""
+
+    def __init__(
+        self,
+        config: DeviceConfig | None = None,
+        *,
+        faults: Faults | FaultSpec | str | None = None,
+        link_path: str | os.PathLike[str] | None = None,
+        state: CameraState | None = None,
+    ) -> None:
+        self.config = config or DeviceConfig()
+        self.faults = faults if isinstance(faults, Faults) else Faults(faults)
+        self.state = state or CameraState(clock=time.monotonic)
+        self.device = ViscaDevice(self.state, self.config, self.faults)
+        self.link_path = Path(link_path) if link_path is not None else None
+        self._clock = self.state.clock
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._slave_name = ""
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._timer: asyncio.TimerHandle | None = None
+        self._backlog = bytearray()
+        self._writer_armed = False
+        self._port_task: asyncio.Task[None] | None = None
+        self.dropped_tx_bytes = 0
+        self.port_generation = 0  # bumped by every (re)open: tests wait for it
+        self.faults.bind(self)
+
+    # ---- lifecycle --------------------------------------------------------------------------
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()
+
+    async def start(self) -> None:
+        """Open the pty (and symlink), power the camera up; returns once ``path`` is usable."""
+        self._loop = asyncio.get_running_loop()
+        self._open_pty()
+        self.device.power_up(self._clock())
+        self._pump()
+        if self.faults.spec.close_port_every is not None:
+            self._port_task = asyncio.create_task(self._unplug_periodically())
+
+    async def stop(self) -> None:
+        """Stop serving: close the pty, remove the symlink."""
+        if self._port_task is not None:
+            self._port_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._port_task
+            self._port_task = None
+        self._close_pty()
+        self.faults.bind(None)
+
+    @property
+    def path(self) -> str:
+        """What pyserial opens: the symlink if ``link_path`` was given, else the pty slave."""
+        return str(self.link_path) if self.link_path is not None else self._slave_name
+
+    @property
+    def slave_name(self) -> str:
+        """The current pty slave device (changes on every reopen)."""
+        return self._slave_name
+
+    @property
+    def port_open(self) -> bool:
+        """True while the pty exists."""
+        return self._master is not None
+
+    # ---- one-shot faults --------------------------------------------------------------------
+
+    def inject_network_change(self) -> None:
+        """Send an unsolicited Network Change now."""
+        self.device.inject_network_change(self._clock())
+        self._pump()
+
+    def power_cycle(self, off_s: float | None = None) -> None:
+        """Cut the camera's power now; it powers up (Network Change) ``off_s`` later."""
+        self.device.power_cycle(self._clock(), off_s)
+        self._pump()
+
+    def set_silent(self, silent: bool) -> None:
+        """While silent the camera reads but never answers."""
+        self.device.set_silent(silent)
+
+    def close_port(self) -> None:
+        """The port vanishes: pty closed, symlink removed (the driver's reads and writes fail)."""
+        if self._master is None:
+            return
+        self._close_pty()
+        self.device.disconnect(self._clock())
+        logger.info("sim camera: port closed")
+
+    def reopen_port(self) -> None:
+        """A new pty appears (symlink repointed); the camera powers up and sends Network Change."""
+        if self._master is not None:
+            return
+        self._open_pty()
+        self.device.reconnect(self._clock())
+        self._pump()
+        logger.info("sim camera: port reopened at %s", self._slave_name)
+
+    # ---- pty --------------------------------------------------------------------------------
+
+    def _open_pty(self) -> None:
+        assert self._loop is not None
+        master, slave = os.openpty()
+        # Fully raw on both ends: no echo, no CR/NL translation, no signals (DESIGN §5).
+        tty.setraw(master)
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self._slave_name = os.ttyname(slave)
+        self.port_generation += 1
+        if self.link_path is not None:
+            tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+            tmp.symlink_to(self._slave_name)
+            tmp.replace(self.link_path)  # atomic: the name never points nowhere while open
+        self._loop.add_reader(master, self._on_readable)
+        logger.info("sim camera: serving on %s", self.path)
+
+    def _close_pty(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if self._master is not None and self._loop is not None:
+            self._loop.remove_reader(self._master)
+            if self._writer_armed:
+                self._loop.remove_writer(self._master)
+                self._writer_armed = False
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = None
+        self._backlog.clear()
+        if self.link_path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self.link_path.unlink()
+
+    def _on_readable(self) -> None:
+        if self._master is None:
+            return
+        try:
+            data = os.read(self._master, READ_CHUNK)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:  # EIO while no slave is open: nothing to read
+            logger.debug("sim camera: pty read failed: %s", exc)
+            return
+        self.device.receive(data, self._clock())
+        self._pump()
+
+    def _pump(self) -> None:
+        """Run the device up to now, write what it sent, and re-arm the timer."""
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        now = self._clock()
+        for emission in self.device.poll(now):
+            self._write(emission.data)
+        deadline = self.device.next_deadline()
+        if deadline is not None and self._loop is not None:
+            self._timer = self._loop.call_later(max(0.0, deadline - self._clock()), self._pump)
+
+    def _write(self, data: bytes) -> None:
+        if self._master is None:
+            return
+        self._backlog += data
+        self._flush()
+
+    def _flush(self) -> None:
+        if self._master is None:
+            return
+        while self._backlog:
+            try:
+                written = os.write(self._master, self._backlog)
+            except BlockingIOError:
+                break
+            except OSError as exc:
+                logger.debug("sim camera: pty write failed: %s", exc)
+                self._backlog.clear()
+                break
+            del self._backlog[:written]
+        if len(self._backlog) > TX_BACKLOG_MAX_BYTES:
+            excess = len(self._backlog) - TX_BACKLOG_MAX_BYTES
+            del self._backlog[:excess]
+            self.dropped_tx_bytes += excess
+        assert self._loop is not None
+        if self._backlog and not self._writer_armed:
+            self._loop.add_writer(self._master, self._flush)
+            self._writer_armed = True
+        elif not self._backlog and self._writer_armed:
+            self._loop.remove_writer(self._master)
+            self._writer_armed = False
+
+    async def _unplug_periodically(self) -> None:
+        spec = self.faults.spec
+        assert spec.close_port_every is not None
+        while True:
+            await asyncio.sleep(spec.close_port_every)
+            self.close_port()
+            await asyncio.sleep(spec.close_port_for)
+            self.reopen_port()
+
+
+class InProcessCamera:
+    """The simulated camera without a pty, in virtual time: for fast, deterministic unit tests."""
+
+    def __init__(
+        self,
+        config: DeviceConfig | None = None,
+        *,
+        faults: Faults | FaultSpec | str | None = None,
+        clock: VirtualClock | None = None,
+        state: CameraState | None = None,
+    ) -> None:
+        self.clock = clock or VirtualClock()
+        self.config = config or DeviceConfig()
+        self.faults = faults if isinstance(faults, Faults) else Faults(faults)
+        self.state = state or CameraState(clock=self.clock)
+        self.device = ViscaDevice(self.state, self.config, self.faults)
+        self.output: deque[Emission] = deque(maxlen=4096)  # everything sent, for inspection
+        self._port_open = True
+        self.faults.bind(self)
+        self.device.power_up(self.clock())
+
+    def now(self) -> float:
+        """Current virtual time."""
+        return self.clock()
+
+    def send(self, data: bytes | codec.Request) -> None:
+        """The controller writes ``data`` (raw bytes, or a request for the current address)."""
+        if not isinstance(data, bytes | bytearray):
+            data = codec.encode_request(data, self.device.address)
+        self.device.receive(bytes(data), self.clock())
+
+    def run_for(self, seconds: float) -> list[Emission]:
+        """Advance virtual time by ``seconds``; return what the camera sent meanwhile."""
+        return self.run_until(self.clock() + seconds)
+
+    def run_until(
+        self, t_end: float, stop: Callable[[list[Emission]], bool] | None = None
+    ) -> list[Emission]:
+        """Advance to ``t_end`` (or until ``stop(sent so far)`` is true); return what was sent."""
+        sent: list[Emission] = []
+        while (deadline := self.device.next_deadline()) is not None and deadline <= t_end:
+            self.clock.set(max(deadline, self.clock()))
+            batch = self.device.poll(self.clock())
+            sent += batch
+            self.output.extend(batch)
+            if stop is not None and batch and stop(sent):
+                return sent
+        self.clock.set(max(t_end, self.clock()))
+        batch = self.device.poll(self.clock())
+        sent += batch
+        self.output.extend(batch)
+        return sent
+
+    def exchange(self, data: bytes | codec.Request, within_s: float = 0.1) -> list[Emission]:
+        """Send ``data`` and collect everything sent back in the next ``within_s`` seconds."""
+        self.send(data)
+        return self.run_for(within_s)
+
+    # ---- one-shot faults (FaultTarget) -----------------------------------------------------
+
+    def inject_network_change(self) -> None:
+        """Send an unsolicited Network Change now."""
+        self.device.inject_network_change(self.clock())
+
+    def power_cycle(self, off_s: float | None = None) -> None:
+        """Cut power now; power up ``off_s`` later."""
+        self.device.power_cycle(self.clock(), off_s)
+
+    def set_silent(self, silent: bool) -> None:
+        """Read but never answer."""
+        self.device.set_silent(silent)
+
+    def close_port(self) -> None:
+        """The port vanishes."""
+        self._port_open = False
+        self.device.disconnect(self.clock())
+
+    def reopen_port(self) -> None:
+        """The port returns; the camera powers up again."""
+        self._port_open = True
+        self.device.reconnect(self.clock())
+
+
+def packets(emissions: list[Emission]) -> list[bytes]:
+    """Split emissions into raw packets (garbage dropped), for tests."""
+    reassembler = codec.Reassembler()
+    out: list[bytes] = []
+    for emission in emissions:
+        out += reassembler.feed(emission.data)
+    return out
