@@ -1,0 +1,1 @@
+"""Sony VISCA over RS-232: sans-IO codec, asyncio link, typed camera API."""

@@ -1,0 +1,540 @@
+"""Typed async camera API in user units (degrees, deg/s, counts) over a :class:`ViscaLink`.
+
+One :class:`Camera` per camera address (1–7); several share one link on a daisy chain. Unit
+conversion goes through a :class:`CameraProfile` (EVI-D100 by default, EVI-D70 second). Every
+argument is checked against the profile *before* a byte is sent (``ValueError`` naming the field
+and its range). Idempotent operations (inquiries, absolute/direct moves, stops, modes) are
+retried ``retries`` times after a timeout or a Network Change; relative moves never are (a lost
+ACK could mean the camera already moved).
+
+Directions follow the VISCA convention used by the simulator: pan right and tilt up positive.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Literal, TypeVar
+
+from drivers.visca.codec import (
+    CamPower,
+    Command,
+    FocusDirect,
+    FocusDirection,
+    FocusDrive,
+    FocusMode,
+    FocusModeInquiry,
+    FocusPositionInquiry,
+    IFClear,
+    PanDirection,
+    PanTiltAbsolute,
+    PanTiltDrive,
+    PanTiltHome,
+    PanTiltPositionInquiry,
+    PanTiltRelative,
+    PowerInquiry,
+    TiltDirection,
+    Version,
+    VersionInquiry,
+    ZoomDirect,
+    ZoomPositionInquiry,
+    check_range,
+)
+from drivers.visca.errors import ViscaError, ViscaNetworkChangeError, ViscaTimeoutError
+from drivers.visca.link import (
+    FIELD_S,
+    POWER_COMPLETION_TIMEOUT_S,
+    CommandHandle,
+    ViscaLink,
+)
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+# Move Completion timeouts: the camera's travel time times a tolerance on the motor speed
+# (tables are nominal; ±20% covers load and temperature), plus the time to notice the end at a
+# field boundary and get the Completion over the wire, with margin.
+MOVE_TIMEOUT_FACTOR = 1.25
+MOVE_TIMEOUT_MARGIN_S = 1.0
+# Early-Completion models: poll FocusPosInq until the lens stops, at most this long after the
+# Completion, one inquiry every two fields (the camera answers one message per field).
+FOCUS_SETTLE_TIMEOUT_S = 1.0
+FOCUS_POLL_PERIOD_S = 2 * FIELD_S
+DEFAULT_RETRIES = 1  # retries of an idempotent operation after a timeout or Network Change
+
+
+class SpeedCode(int):
+    """A raw VISCA pan/tilt speed code (01…18), as opposed to a speed in deg/s."""
+
+    __slots__ = ()
+
+
+@dataclass(frozen=True, slots=True)
+class CameraProfile:
+    """What differs between camera models: ranges, counts per degree, speed tables, timings."""
+
+    name: str
+    pan_range_deg: tuple[float, float]
+    tilt_range_deg: tuple[float, float]
+    pan_counts_per_deg: float
+    tilt_counts_per_deg: float
+    pan_speeds_deg_s: tuple[float, ...]  # deg/s of speed codes 01, 02, …
+    tilt_speeds_deg_s: tuple[float, ...]
+    focus_range: tuple[int, int]  # far end … near end, counts
+    zoom_range: tuple[int, int]  # wide … tele, counts
+    focus_full_travel_s: float  # worst-case Focus Direct end to end
+    zoom_full_travel_s: float  # worst-case Zoom Direct end to end
+    home_speed_deg_s: float  # speed of Home (the camera's own choice)
+    focus_completion_early: bool = False  # Completion before the lens has stopped
+    focus_settle_tolerance_counts: int = 0
+
+    @property
+    def max_pan_speed_code(self) -> int:
+        """Highest pan speed code."""
+        return len(self.pan_speeds_deg_s)
+
+    @property
+    def max_tilt_speed_code(self) -> int:
+        """Highest tilt speed code."""
+        return len(self.tilt_speeds_deg_s)
+
+    def pan_to_counts(self, pan_deg: float, field: str = "pan_deg") -> int:
+        """Absolute pan angle → position counts (ValueError outside the range)."""
+        return round(
+            _check_deg(field, pan_deg, self.pan_range_deg, self.name) * self.pan_counts_per_deg
+        )
+
+    def tilt_to_counts(self, tilt_deg: float, field: str = "tilt_deg") -> int:
+        """Absolute tilt angle → position counts (ValueError outside the range)."""
+        return round(
+            _check_deg(field, tilt_deg, self.tilt_range_deg, self.name) * self.tilt_counts_per_deg
+        )
+
+    def pan_speed_code(self, speed: float | SpeedCode | None, field: str = "speed") -> int:
+        """A pan speed (deg/s, or a SpeedCode; None = fastest) → speed code."""
+        return _speed_code(speed, self.pan_speeds_deg_s, field, self.name)
+
+    def tilt_speed_code(self, speed: float | SpeedCode | None, field: str = "tilt_speed") -> int:
+        """A tilt speed → speed code; a speed beyond the tilt table runs at the fastest tilt."""
+        if speed is not None and not isinstance(speed, SpeedCode):
+            _check_positive(field, speed)
+            speed = min(float(speed), self.tilt_speeds_deg_s[-1])
+        return _speed_code(speed, self.tilt_speeds_deg_s, field, self.name)
+
+
+# EVI-D100 (DESIGN §5; Sony EVI-D100 technical manual): pan ±100° = 0xFA60…0x05A0, tilt ±25° =
+# 0xFE98…0x0168, 14.4 counts/°; pan codes 01…18, tilt 01…14 share one table.
+_D100_SPEEDS = (
+    2.0, 2.4, 3.0, 3.7, 4.7, 6.1, 7.4, 9.1, 11.0, 14.0, 18.0, 22.0,
+    27.0, 34.0, 42.0, 52.0, 65.0, 81.0, 100.0, 125.0, 155.0, 190.0, 240.0, 300.0,
+)  # fmt: skip
+EVI_D100 = CameraProfile(
+    name="EVI-D100",
+    pan_range_deg=(-100.0, 100.0),
+    tilt_range_deg=(-25.0, 25.0),
+    pan_counts_per_deg=14.4,
+    tilt_counts_per_deg=14.4,
+    pan_speeds_deg_s=_D100_SPEEDS,
+    tilt_speeds_deg_s=_D100_SPEEDS[:0x14],
+    focus_range=(0x1000, 0x8400),
+    zoom_range=(0x0000, 0x4000),
+    focus_full_travel_s=2.0,  # Focus Direct ~2 s worst case end to end (issue 2)
+    zoom_full_travel_s=2.5,
+    home_speed_deg_s=300.0,
+)
+
+# EVI-D70 (Sony EVI-D70 technical manual, "Pan/tilt position" in the D30/D31 and D70-mode
+# tables): pan −170…+170° = 0xF725…0x08DB (±2267), tilt −30…+90° = 0xFE70…0x04B0 (−400…+1200),
+# i.e. 13.33 counts/° on both axes; focus 0x1000 (far) … 0xC000 (near, 10 cm); optical zoom
+# 0x0000…0x4000 (digital to 0x7AC0 is not used for depth from focus). Speed codes: pan 01…18,
+# tilt 01…17, maxima 100 °/s pan and 90 °/s tilt (spec sheet). ASSUMPTION: the per-code table
+# was not found in the sources available; it is taken log-spaced from 2 °/s (as the D100's
+# code 01) to those maxima. Verify on hardware before relying on deg/s for this model.
+EVI_D70 = CameraProfile(
+    name="EVI-D70",
+    pan_range_deg=(-170.0, 170.0),
+    tilt_range_deg=(-30.0, 90.0),
+    pan_counts_per_deg=2267 / 170,
+    tilt_counts_per_deg=1200 / 90,
+    pan_speeds_deg_s=tuple(round(2.0 * (100.0 / 2.0) ** (i / 23), 2) for i in range(24)),
+    tilt_speeds_deg_s=tuple(round(2.0 * (90.0 / 2.0) ** (i / 22), 2) for i in range(23)),
+    focus_range=(0x1000, 0xC000),
+    zoom_range=(0x0000, 0x4000),
+    focus_full_travel_s=2.5,
+    zoom_full_travel_s=2.5,
+    home_speed_deg_s=100.0,
+)
+
+PROFILES: dict[str, CameraProfile] = {"evi-d100": EVI_D100, "evi-d70": EVI_D70}
+
+
+def profile_for(model: str) -> CameraProfile:
+    """The profile of ``model`` (case-insensitive, e.g. ``"EVI-D100"``); ValueError lists them."""
+    try:
+        return PROFILES[model.strip().lower()]
+    except KeyError:
+        known = ", ".join(p.name for p in PROFILES.values())
+        raise ValueError(f"unknown camera model {model!r}; known models: {known}") from None
+
+
+class Camera:
+    """One VISCA camera at ``address`` on ``link``, in user units."""
+
+    def __init__(
+        self,
+        link: ViscaLink,
+        address: int = 1,
+        profile: CameraProfile = EVI_D100,
+        *,
+        retries: int = DEFAULT_RETRIES,
+    ) -> None:
+        check_range("camera address", address, 1, 7)
+        self.link = link
+        self.address = address
+        self.profile = profile
+        self.retries = retries
+        self.version_info: Version | None = None
+
+    # ---- set-up -------------------------------------------------------------------------------
+
+    async def initialize(self) -> Version:
+        """Address Set + IF_Clear, power on if in standby, read the version, manual focus.
+
+        Registers itself to run again after a reconnect or Network Change.
+        """
+        chain = await self.link.ensure_addressed()
+        if chain and self.address > chain:
+            raise ViscaError(
+                f"no camera at address {self.address}: Address Set found {chain} camera(s) on "
+                f"{self.link.url}; check the configured address and the daisy-chain cabling"
+            )
+        await self._retry(lambda: self.link.inquire(self.address, IFClear()))
+        power = await self._retry(lambda: self.link.inquire(self.address, PowerInquiry()))
+        if not power.on:
+            logger.info("camera %d is in standby: powering on", self.address)
+            await self.power(on=True)
+        version = await self.version()
+        if version.max_sockets in (1, 2):
+            self.link.set_max_sockets(self.address, version.max_sockets)
+        await self.focus_mode(auto=False)
+        self.version_info = version
+        self.link.add_reinit_callback(self._reinitialize)
+        logger.info(
+            "camera %d (%s profile) ready: vendor %04X model %04X rom %04X, %d socket(s)",
+            self.address, self.profile.name, version.vendor, version.model, version.rom,
+            version.max_sockets,
+        )  # fmt: skip
+        return version
+
+    async def version(self) -> Version:
+        """VersionInq: vendor, model, ROM and number of sockets."""
+        return await self._retry(lambda: self.link.inquire(self.address, VersionInquiry()))
+
+    async def power(self, on: bool) -> None:
+        """CAM_Power on or standby (returns when the camera has finished switching)."""
+        await self._command(CamPower(on=on), POWER_COMPLETION_TIMEOUT_S)
+
+    async def power_is_on(self) -> bool:
+        """PowerInq."""
+        answer = await self._retry(lambda: self.link.inquire(self.address, PowerInquiry()))
+        return answer.on
+
+    # ---- focus ------------------------------------------------------------------------------
+
+    async def start_focus_direct(self, counts: int) -> CommandHandle:
+        """Send Focus Direct and return its handle (ACK and Completion awaited by the caller)."""
+        request = FocusDirect(_check_int("counts", counts, self.profile.focus_range))
+        return self.link.submit(self.address, request, completion_timeout=self._focus_timeout_s())
+
+    async def focus_direct(self, counts: int) -> None:
+        """Move the focus to ``counts``; return once the lens has stopped."""
+        request = FocusDirect(_check_int("counts", counts, self.profile.focus_range))
+        await self._command(request, self._focus_timeout_s())
+        if self.profile.focus_completion_early:
+            await self._wait_focus_settled(counts)
+
+    async def focus_position(self) -> int:
+        """FocusPosInq in counts."""
+        answer = await self._retry(lambda: self.link.inquire(self.address, FocusPositionInquiry()))
+        return answer.counts
+
+    async def focus_mode(self, auto: bool) -> None:
+        """Focus Auto (True) or Manual (False)."""
+        await self._command(FocusMode(auto=auto))
+
+    async def focus_is_auto(self) -> bool:
+        """FocusModeInq."""
+        answer = await self._retry(lambda: self.link.inquire(self.address, FocusModeInquiry()))
+        return answer.auto
+
+    async def focus_drive(
+        self, direction: Literal["far", "near", "stop"], speed: int | None = None
+    ) -> None:
+        """Focus Far/Near (continuous, variable ``speed`` 0–7 or the standard speed) or Stop."""
+        directions = {
+            "far": FocusDirection.FAR,
+            "near": FocusDirection.NEAR,
+            "stop": FocusDirection.STOP,
+        }
+        if direction not in directions:
+            raise ValueError(f"direction must be one of far, near, stop; got {direction!r}")
+        if speed is not None:
+            check_range("speed", speed, 0, 7)
+        await self._command(FocusDrive(directions[direction], speed))
+
+    async def focus_stop(self) -> None:
+        """Focus Stop (jumps the queue)."""
+        await self._command(FocusDrive(FocusDirection.STOP))
+
+    # ---- zoom -------------------------------------------------------------------------------
+
+    async def zoom_direct(self, counts: int) -> None:
+        """Move the zoom to ``counts``; return once it has stopped."""
+        request = ZoomDirect(_check_int("counts", counts, self.profile.zoom_range))
+        timeout = self.profile.zoom_full_travel_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+        await self._command(request, timeout)
+
+    async def zoom_position(self) -> int:
+        """ZoomPosInq in counts."""
+        answer = await self._retry(lambda: self.link.inquire(self.address, ZoomPositionInquiry()))
+        return answer.counts
+
+    # ---- pan/tilt ---------------------------------------------------------------------------
+
+    async def pan_tilt_absolute(
+        self,
+        pan_deg: float,
+        tilt_deg: float,
+        speed: float | SpeedCode | None = None,
+        tilt_speed: float | SpeedCode | None = None,
+    ) -> None:
+        """Move to (pan_deg, tilt_deg); ``speed`` in deg/s or a SpeedCode (None: fastest).
+
+        ``tilt_speed`` defaults to ``speed`` (capped at the fastest tilt). Returns on arrival.
+        """
+        request, timeout = self._pan_tilt_move(
+            PanTiltAbsolute, pan_deg, tilt_deg, speed, tilt_speed
+        )
+        await self._command(request, timeout)
+
+    async def start_pan_tilt_absolute(
+        self,
+        pan_deg: float,
+        tilt_deg: float,
+        speed: float | SpeedCode | None = None,
+        tilt_speed: float | SpeedCode | None = None,
+    ) -> CommandHandle:
+        """Send an absolute move and return its handle."""
+        request, timeout = self._pan_tilt_move(
+            PanTiltAbsolute, pan_deg, tilt_deg, speed, tilt_speed
+        )
+        return self.link.submit(self.address, request, completion_timeout=timeout)
+
+    async def pan_tilt_relative(
+        self,
+        pan_deg: float,
+        tilt_deg: float,
+        speed: float | SpeedCode | None = None,
+        tilt_speed: float | SpeedCode | None = None,
+    ) -> None:
+        """Move by (pan_deg, tilt_deg) from where the head is; never retried."""
+        request, timeout = self._pan_tilt_move(
+            PanTiltRelative, pan_deg, tilt_deg, speed, tilt_speed
+        )
+        await self.link.command(self.address, request, completion_timeout=timeout)
+
+    async def pan_tilt_drive(self, pan_speed_deg_s: float, tilt_speed_deg_s: float) -> None:
+        """Turn continuously at signed speeds (right/up positive; 0 stops that axis)."""
+        profile = self.profile
+        pan_dir, pan_code = _drive_axis(
+            "pan_speed_deg_s", pan_speed_deg_s, profile.pan_speeds_deg_s, profile.name,
+            (PanDirection.RIGHT, PanDirection.LEFT, PanDirection.STOP),
+        )  # fmt: skip
+        tilt_dir, tilt_code = _drive_axis(
+            "tilt_speed_deg_s", tilt_speed_deg_s, profile.tilt_speeds_deg_s, profile.name,
+            (TiltDirection.UP, TiltDirection.DOWN, TiltDirection.STOP),
+        )  # fmt: skip
+        request = PanTiltDrive(pan_code, tilt_code, PanDirection(pan_dir), TiltDirection(tilt_dir))
+        await self._command(request)
+
+    async def pan_tilt_stop(self) -> None:
+        """Stop pan and tilt now (a running absolute/relative/home move is cancelled first)."""
+        running = self.link.running(self.address)
+        moves = [
+            s for s, r in running.items()
+            if isinstance(r, PanTiltAbsolute | PanTiltRelative | PanTiltHome)
+        ]  # fmt: skip
+        if moves and len(running) >= 2:
+            # Both sockets busy: the Stop would wait for one (or draw buffer full); free the
+            # socket of the pan/tilt move, which ends that move anyway.
+            for socket in moves:
+                await self.link.cancel(self.address, socket)
+        await self._command(PanTiltDrive.stop())
+
+    async def pan_tilt_position(self) -> tuple[float, float]:
+        """Pan-tiltPosInq in degrees (pan, tilt)."""
+        answer = await self._retry(
+            lambda: self.link.inquire(self.address, PanTiltPositionInquiry())
+        )
+        return (
+            answer.pan / self.profile.pan_counts_per_deg,
+            answer.tilt / self.profile.tilt_counts_per_deg,
+        )
+
+    async def home(self) -> None:
+        """Pan/tilt to the home position (0°, 0°)."""
+        p = self.profile
+        span = max(
+            p.pan_range_deg[1] - p.pan_range_deg[0], p.tilt_range_deg[1] - p.tilt_range_deg[0]
+        )
+        timeout = span / p.home_speed_deg_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+        await self._command(PanTiltHome(), timeout)
+
+    async def cancel(self, socket: int) -> bool:
+        """Cancel the command in ``socket``; True if one was running there."""
+        return await self.link.cancel(self.address, socket)
+
+    # ---- internals ----------------------------------------------------------------------------
+
+    async def _command(self, request: Command, completion_timeout: float | None = None) -> None:
+        await self._retry(
+            lambda: self.link.command(self.address, request, completion_timeout=completion_timeout)
+        )
+
+    async def _retry(self, operation: Callable[[], Awaitable[T]]) -> T:
+        attempt = 0
+        while True:
+            try:
+                return await operation()
+            except (ViscaTimeoutError, ViscaNetworkChangeError) as exc:
+                if attempt >= self.retries:
+                    raise
+                attempt += 1
+                logger.debug("camera %d: retrying after %s", self.address, exc)
+
+    def _focus_timeout_s(self) -> float:
+        return self.profile.focus_full_travel_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+
+    def _pan_tilt_move(
+        self,
+        kind: type[PanTiltAbsolute] | type[PanTiltRelative],
+        pan_deg: float,
+        tilt_deg: float,
+        speed: float | SpeedCode | None,
+        tilt_speed: float | SpeedCode | None,
+    ) -> tuple[PanTiltAbsolute | PanTiltRelative, float]:
+        p = self.profile
+        pan_span = p.pan_range_deg[1] - p.pan_range_deg[0]
+        tilt_span = p.tilt_range_deg[1] - p.tilt_range_deg[0]
+        if kind is PanTiltAbsolute:
+            pan = p.pan_to_counts(pan_deg)
+            tilt = p.tilt_to_counts(tilt_deg)
+        else:
+            pan = round(
+                _check_deg("pan_deg", pan_deg, (-pan_span, pan_span), p.name) * p.pan_counts_per_deg
+            )
+            tilt = round(
+                _check_deg("tilt_deg", tilt_deg, (-tilt_span, tilt_span), p.name)
+                * p.tilt_counts_per_deg
+            )
+        pan_code = p.pan_speed_code(speed, "speed")
+        tilt_code = p.tilt_speed_code(speed if tilt_speed is None else tilt_speed, "tilt_speed")
+        # Worst case travel: the whole range (the start position is not known without asking).
+        travel_s = max(
+            pan_span / p.pan_speeds_deg_s[pan_code - 1],
+            tilt_span / p.tilt_speeds_deg_s[tilt_code - 1],
+        )
+        timeout = travel_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+        return kind(pan_code, tilt_code, pan, tilt), timeout
+
+    async def _wait_focus_settled(self, target: int) -> None:
+        tolerance = self.profile.focus_settle_tolerance_counts
+        last: int | None = None
+        async with asyncio.timeout(FOCUS_SETTLE_TIMEOUT_S):
+            while True:
+                position = await self.focus_position()
+                if abs(position - target) <= tolerance or position == last:
+                    return
+                last = position
+                await asyncio.sleep(FOCUS_POLL_PERIOD_S)  # pacing: one inquiry per two fields
+
+    async def _reinitialize(self) -> None:
+        logger.info("re-initialising camera %d on %s", self.address, self.link.url)
+        await self.initialize()
+
+
+# --------------------------------------------------------------------------------------------
+# Private helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _check_deg(field: str, value: float, limits: tuple[float, float], model: str) -> float:
+    low, high = limits
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(
+            f"{field} must be a finite number of degrees in [{low}, {high}], got {value!r}"
+        )
+    if not low <= value <= high:
+        raise ValueError(f"{field} = {value}° is out of range [{low}°, {high}°] for the {model}")
+    return float(value)
+
+
+def _check_int(field: str, value: int, limits: tuple[int, int]) -> int:
+    return check_range(field, value, *limits)
+
+
+def _check_positive(field: str, value: float) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{field} must be a finite speed in deg/s, got {value!r}")
+    if value <= 0:
+        raise ValueError(f"{field} = {value} deg/s must be positive")
+
+
+def _speed_code(
+    speed: float | SpeedCode | None, table: tuple[float, ...], field: str, model: str
+) -> int:
+    if speed is None:
+        return len(table)
+    if isinstance(speed, SpeedCode):
+        return check_range(f"{field} code", int(speed), 1, len(table))
+    _check_positive(field, speed)
+    if speed > table[-1]:
+        raise ValueError(
+            f"{field} = {speed} deg/s is out of range (0, {table[-1]}] deg/s for the {model}"
+        )
+    return _nearest_code(float(speed), table)
+
+
+def _nearest_code(speed: float, table: tuple[float, ...]) -> int:
+    """Speed code (≥ 01) nearest ``speed`` in ratio (the speed tables are geometric)."""
+    target = math.log(speed)
+    best = min(range(len(table)), key=lambda i: abs(math.log(table[i]) - target))
+    return best + 1
+
+
+def _drive_axis(
+    field: str,
+    speed_deg_s: float,
+    table: tuple[float, ...],
+    model: str,
+    directions: tuple[int, int, int],
+) -> tuple[int, int]:
+    positive, negative, stop = directions
+    if (
+        isinstance(speed_deg_s, bool)
+        or not isinstance(speed_deg_s, int | float)
+        or not math.isfinite(speed_deg_s)
+    ):
+        raise ValueError(f"{field} must be a finite signed speed in deg/s, got {speed_deg_s!r}")
+    if abs(speed_deg_s) > table[-1]:
+        raise ValueError(
+            f"{field} = {speed_deg_s} deg/s is out of range [-{table[-1]}, {table[-1]}] deg/s "
+            f"for the {model}"
+        )
+    if speed_deg_s == 0:
+        return stop, 1  # speed 00 is a syntax error on some models: always send ≥ 01
+    return (positive if speed_deg_s > 0 else negative), _nearest_code(abs(speed_deg_s), table)
