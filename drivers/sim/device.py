@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from drivers.sim.faults import Faults
-from drivers.sim.state import CameraState
+from drivers.sim.state import Axis, CameraState
 from drivers.visca import codec
 from drivers.visca.codec import (
     Ack,
@@ -95,6 +95,8 @@ TX_BACKLOG_PACKETS = 256
 
 Group = Literal["pantilt", "focus", "zoom", "power"]
 _MOTOR_GROUPS: tuple[Group, ...] = ("pantilt", "focus", "zoom")
+_Targets = tuple[tuple[Axis, float], ...]  # where each axis of a move ends
+_Started = tuple[Group, float, _Targets]  # motor group, end time, targets
 
 
 @dataclass(frozen=True, slots=True)
@@ -493,23 +495,23 @@ class ViscaDevice:
         if done is None:  # instant command: ACK and Completion together
             self._complete(socket, t)
             return
-        group, finish = done
+        group, finish, targets = done
         token = next(self._token)
-        self._sockets[socket] = _Running(token, group)
+        self._sockets[socket] = _Running(token, group, targets)
         # The camera notices the end of a move at a field boundary.
         period = self.config.field_period_s
         finish_field = max(t, math.ceil(finish / period - 1e-9) * period)
         self._schedule(finish_field, lambda at: self._finish(socket, token, at))
 
-    def _execute(self, request: codec.Request, t: float) -> tuple[Group, float] | None:
-        """Start the physical effect; return (motor group, end time) or None if instant."""
+    def _execute(self, request: codec.Request, t: float) -> _Started | None:
+        """Start the physical effect; return (group, end time, final positions) or None."""
         st = self.state
         cfg = self.config
         match request:
             case codec.CamPower(on=on):
                 self._supersede("power", t)
                 if on and not st.powered:
-                    return "power", t + cfg.power_on_s
+                    return "power", t + cfg.power_on_s, ()
                 if not on and st.powered:
                     for group in _MOTOR_GROUPS:
                         self._supersede(group, t)
@@ -533,15 +535,19 @@ class ViscaDevice:
                 return None
             case codec.FocusDirect(counts=counts):
                 self._supersede("focus", t)
-                return "focus", st.focus.move_to(counts, cfg.focus_speed_counts_s, t)
+                end = st.focus.move_to(counts, cfg.focus_speed_counts_s, t)
+                return "focus", end, ((st.focus, counts),)
             case codec.FocusOnePush():
                 self._supersede("focus", t)
                 here = st.focus.position(t)
                 target = here if self.focus_oracle is None else self.focus_oracle(t)
-                return "focus", st.focus.move_to(target, cfg.focus_speed_counts_s, t)
+                target = _clamp(st.focus, target)
+                end = st.focus.move_to(target, cfg.focus_speed_counts_s, t)
+                return "focus", end, ((st.focus, target),)
             case codec.ZoomDirect(counts=counts):
                 self._supersede("zoom", t)
-                return "zoom", st.zoom.move_to(counts, cfg.zoom_speed_counts_s, t)
+                end = st.zoom.move_to(counts, cfg.zoom_speed_counts_s, t)
+                return "zoom", end, ((st.zoom, counts),)
             case codec.PanTiltDrive():
                 self._supersede("pantilt", t)
                 _drive(st, request, t)
@@ -551,16 +557,16 @@ class ViscaDevice:
                 pan_deg = request.pan / COUNTS_PER_DEGREE
                 tilt_deg = request.tilt / COUNTS_PER_DEGREE
                 if isinstance(request, codec.PanTiltRelative):
-                    pan_deg += st.pan.position(t)
-                    tilt_deg += st.tilt.position(t)
+                    pan_deg = _clamp(st.pan, pan_deg + st.pan.position(t))
+                    tilt_deg = _clamp(st.tilt, tilt_deg + st.tilt.position(t))
                 end = max(
                     st.pan.move_to(pan_deg, speed_deg_s(request.pan_speed), t),
                     st.tilt.move_to(tilt_deg, speed_deg_s(request.tilt_speed), t),
                 )
-                return "pantilt", end
+                return "pantilt", end, ((st.pan, pan_deg), (st.tilt, tilt_deg))
             case codec.PanTiltHome():
                 self._supersede("pantilt", t)
-                return "pantilt", _move_pan_tilt(st, 0.0, 0.0, t)
+                return "pantilt", _move_pan_tilt(st, 0.0, 0.0, t), _home(st)
             case codec.PanTiltReset():
                 # Runs to the lower end stops, then home, at full speed.
                 self._supersede("pantilt", t)
@@ -574,16 +580,20 @@ class ViscaDevice:
                             _move_pan_tilt(st, 0.0, 0.0, at)
 
                 self._schedule(leg, second_leg)
-                return "pantilt", leg + _travel_s(st.pan.low, st.tilt.low)
+                return "pantilt", leg + _travel_s(st.pan.low, st.tilt.low), _home(st)
         raise AssertionError(f"unhandled command {request!r}")
 
     def _finish(self, socket: int, token: int, t: float) -> None:
         running = self._sockets[socket]
         if running is None or running.token != token:
             return  # cancelled, cleared or superseded meanwhile
-        if running.group == "power":
-            with self.state.lock:
+        with self.state.lock:
+            if running.group == "power":
                 self.state.powered = True
+            # Land exactly on the target: t·v sums leave float dust (6144.0000000005 counts).
+            for axis, target in running.targets:
+                if not axis.moving(t):
+                    axis.jump(target, t)
         self._sockets[socket] = None
         self._complete(socket, t)
 
@@ -663,6 +673,15 @@ class VirtualClock:
 class _Running:
     token: int
     group: Group
+    targets: _Targets
+
+
+def _home(st: CameraState) -> _Targets:
+    return ((st.pan, 0.0), (st.tilt, 0.0))
+
+
+def _clamp(axis: Axis, value: float) -> float:
+    return min(axis.high, max(axis.low, value))
 
 
 def speed_deg_s(code: int) -> float:

@@ -62,7 +62,8 @@ class SimCameraServer:
         self._writer_armed = False
         self._port_task: asyncio.Task[None] | None = None
         self.dropped_tx_bytes = 0
-        self.port_generation = 0  # bumped by every (re)open: tests wait for it
+        self.port_generation = 0  # bumped by every (re)open
+        self._generation_waiters: list[tuple[int, asyncio.Future[None]]] = []
         self.faults.bind(self)
 
     # ---- lifecycle --------------------------------------------------------------------------
@@ -112,6 +113,18 @@ class SimCameraServer:
     def port_open(self) -> bool:
         """True while the pty exists."""
         return self._master is not None
+
+    async def wait_port_generation(self, generation: int) -> None:
+        """Return once the pty has been opened ``generation`` times (1 = the first open)."""
+        if self.port_generation >= generation:
+            return
+        assert self._loop is not None, "start the server first"
+        future: asyncio.Future[None] = self._loop.create_future()
+        self._generation_waiters.append((generation, future))
+        try:
+            await future
+        finally:
+            self._generation_waiters = [w for w in self._generation_waiters if w[1] is not future]
 
     # ---- one-shot faults --------------------------------------------------------------------
 
@@ -165,6 +178,9 @@ class SimCameraServer:
             tmp.symlink_to(self._slave_name)
             tmp.replace(self.link_path)  # atomic: the name never points nowhere while open
         self._loop.add_reader(master, self._on_readable)
+        for wanted, future in self._generation_waiters:
+            if wanted <= self.port_generation and not future.done():
+                future.set_result(None)
         logger.info("sim camera: serving on %s", self.path)
 
     def _close_pty(self) -> None:
