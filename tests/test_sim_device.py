@@ -6,6 +6,8 @@ import itertools
 import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drivers.sim.device import (
     COUNTS_PER_DEGREE,
@@ -542,3 +544,32 @@ def test_virtual_clock_never_goes_back() -> None:
     assert clock.advance(0.5) == 1.5
     with pytest.raises(ValueError, match="cannot go back"):
         clock.set(1.0)
+
+
+# ---- robustness -----------------------------------------------------------------------------
+
+
+@settings(max_examples=200, deadline=None)
+@given(noise=st.binary(max_size=64), chunk=st.integers(min_value=1, max_value=8))
+def test_no_byte_stream_breaks_the_camera(noise: bytes, chunk: int) -> None:
+    cam = InProcessCamera(MANUAL)
+    for i in range(0, len(noise), chunk):
+        cam.send(noise[i : i + chunk])
+        cam.run_for(0.005)
+    cam.run_for(0.5)
+    # Whatever came before, a terminator resynchronises and the camera answers again.
+    address = cam.device.address  # the noise may have held an Address Set
+    inquiry = codec.encode_request(codec.VersionInquiry(), address)
+    sent = cam.exchange(b"\xff" + inquiry, within_s=0.5)
+    assert packets(sent)[-1] == codec.encode_reply(
+        InquiryReply(codec.Version(0x0020, 0x040E, 0x0200, 2).to_data()), address
+    )
+
+
+def test_commands_fed_one_byte_at_a_time() -> None:
+    cam = InProcessCamera(MANUAL)
+    cam.run_for(0.02)
+    for byte in codec.encode_request(codec.FocusDirect(0x2000), 1):
+        cam.send(bytes((byte,)))
+        cam.run_for(0.001)
+    assert hexes(cam.run_for(1.0)) == ["90 41 FF", "90 51 FF"]
