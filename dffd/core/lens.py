@@ -1,0 +1,214 @@
+"""Lens model: focus counts <-> lens-to-sensor distance v (PCHIP) and the thin-lens depth relation.
+
+One model is built either from a calibration file (``config/lenses/*.toml``) or from the ``lens``
+block of a recording's ``meta.json`` (DESIGN §2, §7). Units: millimetres for the lens, metres for
+depths handed to the rest of the core.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.interpolate import PchipInterpolator
+
+MM_PER_M = 1000.0
+
+
+class LensError(ValueError):
+    """A lens calibration is missing a field or is not physically valid; the message names it."""
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Lens:
+    """A calibrated lens at a fixed zoom: focal length, pixel pitch and the focus table."""
+
+    name: str
+    focal_length_mm: float
+    pixel_pitch_mm: float
+    focus_counts: tuple[int, ...]
+    focus_v_mm: tuple[float, ...]
+    f_number: float | None = None
+    zoom_counts: int | None = None
+    _to_v: PchipInterpolator = field(init=False, repr=False)
+    _to_counts: PchipInterpolator = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        _validate(self)
+        counts = np.asarray(self.focus_counts, dtype=np.float64)
+        v = np.asarray(self.focus_v_mm, dtype=np.float64)
+        order = np.argsort(v)
+        object.__setattr__(self, "_to_v", PchipInterpolator(counts, v, extrapolate=False))
+        object.__setattr__(
+            self, "_to_counts", PchipInterpolator(v[order], counts[order], extrapolate=False)
+        )
+
+    # -- construction -----------------------------------------------------------------------
+    @classmethod
+    def from_toml(cls, path: str | Path) -> Lens:
+        """Load ``[lens]`` from a calibration TOML file."""
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise LensError(f"cannot read lens file {path}: {exc}; check the path") from exc
+        except tomllib.TOMLDecodeError as exc:
+            raise LensError(f"lens file {path} is not valid TOML: {exc}") from exc
+        block = data.get("lens")
+        if not isinstance(block, dict):
+            raise LensError(f"lens file {path} has no [lens] table")
+        return cls.from_meta(block, source=str(path))
+
+    @classmethod
+    def from_meta(cls, meta: Mapping[str, Any], source: str = "lens block") -> Lens:
+        """Build from a mapping with ``focal_length_mm``, ``pixel_pitch_mm``, ``focus_table``."""
+        table = meta.get("focus_table")
+        if not isinstance(table, Sequence) or isinstance(table, str) or len(table) < 2:
+            raise LensError(
+                f"{source}: focus_table must be a list of at least two [counts, v_mm] pairs"
+            )
+        counts: list[int] = []
+        vs: list[float] = []
+        for i, row in enumerate(table):
+            if not isinstance(row, Sequence) or isinstance(row, str) or len(row) != 2:
+                raise LensError(f"{source}: focus_table[{i}] must be a [counts, v_mm] pair")
+            c, v = row
+            if not isinstance(c, int | float) or float(c) != int(c):
+                raise LensError(f"{source}: focus_table[{i}] counts {c!r} must be an integer")
+            counts.append(int(c))
+            vs.append(_number(v, f"focus_table[{i}] v_mm", source))
+        f_number = meta.get("f_number")
+        zoom = meta.get("zoom_counts")
+        return cls(
+            name=str(meta.get("name", "unnamed")),
+            focal_length_mm=_number(meta.get("focal_length_mm"), "focal_length_mm", source),
+            pixel_pitch_mm=_number(meta.get("pixel_pitch_mm"), "pixel_pitch_mm", source),
+            focus_counts=tuple(counts),
+            focus_v_mm=tuple(vs),
+            f_number=None if f_number is None else _number(f_number, "f_number", source),
+            zoom_counts=None if zoom is None else int(zoom),
+        )
+
+    def to_meta(self) -> dict[str, Any]:
+        """The ``lens`` block of a recording's ``meta.json`` (round-trips through from_meta)."""
+        meta: dict[str, Any] = {
+            "name": self.name,
+            "focal_length_mm": self.focal_length_mm,
+            "pixel_pitch_mm": self.pixel_pitch_mm,
+            "focus_table": [
+                [c, v] for c, v in zip(self.focus_counts, self.focus_v_mm, strict=True)
+            ],
+        }
+        if self.f_number is not None:
+            meta["f_number"] = self.f_number
+        if self.zoom_counts is not None:
+            meta["zoom_counts"] = self.zoom_counts
+        return meta
+
+    # -- derived quantities -----------------------------------------------------------------
+    @property
+    def focal_length_px(self) -> float:
+        """Focal length in pixels."""
+        return self.focal_length_mm / self.pixel_pitch_mm
+
+    @property
+    def counts_range(self) -> tuple[int, int]:
+        """(min, max) focus counts covered by the table."""
+        return self.focus_counts[0], self.focus_counts[-1]
+
+    @property
+    def v_range_mm(self) -> tuple[float, float]:
+        """(min, max) lens-to-sensor distance covered by the table."""
+        return min(self.focus_v_mm), max(self.focus_v_mm)
+
+    @property
+    def depth_range_m(self) -> tuple[float, float]:
+        """(nearest, farthest) depth in focus somewhere in the table (farthest may be inf)."""
+        vmin, vmax = self.v_range_mm
+        return self.depth_from_v(vmax), self.depth_from_v(vmin)
+
+    # -- conversions ------------------------------------------------------------------------
+    def v_from_counts(self, counts: float) -> float:
+        """Lens-to-sensor distance (mm) at ``counts``; clamps to the table range."""
+        lo, hi = self.counts_range
+        return float(self._to_v(min(max(float(counts), lo), hi)))
+
+    def v_from_counts_array(self, counts: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Vectorised :meth:`v_from_counts`."""
+        lo, hi = self.counts_range
+        c = np.clip(np.asarray(counts, dtype=np.float64), lo, hi)
+        return np.asarray(self._to_v(c), dtype=np.float64)
+
+    def counts_from_v(self, v_mm: float) -> int:
+        """Nearest focus counts (rounded) for ``v_mm``; clamps to the table range."""
+        vmin, vmax = self.v_range_mm
+        return round(float(self._to_counts(min(max(v_mm, vmin), vmax))))
+
+    def depth_from_v(self, v_mm: float) -> float:
+        """Thin lens (1): depth z (m) in focus at lens-to-sensor distance ``v_mm``."""
+        f = self.focal_length_mm
+        if v_mm <= f:
+            return math.inf
+        return f * v_mm / (v_mm - f) / MM_PER_M
+
+    def v_from_depth(self, z_m: float) -> float:
+        """Thin lens (1) inverted: v (mm) that focuses depth ``z_m``."""
+        f = self.focal_length_mm
+        z = z_m * MM_PER_M
+        if not z > f:
+            raise ValueError(f"depth {z_m} m is inside the focal length; cannot be in focus")
+        return f * z / (z - f)
+
+    def counts_for_depth(self, z_m: float) -> int:
+        """Focus counts that focus depth ``z_m`` (clamped to the table)."""
+        return self.counts_from_v(self.v_from_depth(z_m))
+
+    def dz_dv(self, v_mm: float) -> float:
+        """dz/dv in metres per millimetre at ``v_mm`` (negative: larger v, nearer target)."""
+        f = self.focal_length_mm
+        return -(f * f) / (v_mm - f) ** 2 / MM_PER_M
+
+    def blur_radius_px(self, v0_mm: float, v_mm: float, f_number: float) -> float:
+        """Geometric blur-circle radius (px) for setting ``v0`` when ``v`` is sharp (DESIGN §2)."""
+        aperture = self.focal_length_mm / f_number
+        return 0.5 * aperture * abs(v0_mm - v_mm) / v_mm / self.pixel_pitch_mm
+
+
+def _number(value: object, name: str, source: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise LensError(f"{source}: {name} is missing or not a number (got {value!r})")
+    out = float(value)
+    if not math.isfinite(out):
+        raise LensError(f"{source}: {name} must be finite (got {value!r})")
+    return out
+
+
+def _validate(lens: Lens) -> None:
+    src = f"lens {lens.name!r}"
+    if lens.focal_length_mm <= 0:
+        raise LensError(f"{src}: focal_length_mm must be > 0 (got {lens.focal_length_mm})")
+    if lens.pixel_pitch_mm <= 0:
+        raise LensError(f"{src}: pixel_pitch_mm must be > 0 (got {lens.pixel_pitch_mm})")
+    if lens.f_number is not None and lens.f_number <= 0:
+        raise LensError(f"{src}: f_number must be > 0 (got {lens.f_number})")
+    if len(lens.focus_counts) != len(lens.focus_v_mm) or len(lens.focus_counts) < 2:
+        raise LensError(f"{src}: focus_table needs at least two [counts, v_mm] rows")
+    counts = np.asarray(lens.focus_counts)
+    v = np.asarray(lens.focus_v_mm)
+    if np.any(np.diff(counts) <= 0):
+        raise LensError(f"{src}: focus_table counts must be strictly increasing")
+    dv = np.diff(v)
+    if not (np.all(dv > 0) or np.all(dv < 0)):
+        raise LensError(f"{src}: focus_table v_mm must be strictly monotone in counts")
+    # v == f is the infinity setting (the far end of real tables); v < f is not physical.
+    if np.any(v < lens.focal_length_mm):
+        raise LensError(
+            f"{src}: focus_table v_mm must be >= focal_length_mm "
+            f"({lens.focal_length_mm}); a setting with v < f focuses beyond infinity"
+        )

@@ -1,0 +1,546 @@
+"""The estimation pipeline: tagged frames in, estimates and burst measurements out.
+
+Per frame (pure, synchronous, deterministic; no clock but the frames' own ``t``):
+
+* ``acquiring``/``lost``: look for the target (pending ROI, else near the last position, else the
+  whole frame when ``auto_acquire``); on success the contour is refined on that frame.
+* every frame: the active contour is updated (transit frames: translation only).
+* burst frames: the focus cost (2) is taken along the normals; when the burst is complete (its
+  ``burst_size`` slots, or a track frame / another burst id arrives) the parabola is fitted and a
+  :class:`Measurement` is emitted.
+* track frames: the normalised size ``s = r p / F`` (``F`` the image distance, i.e. ``v0`` of the
+  frame's focus setting under the thin-lens magnification) gives ``ρ`` and the exact transition
+  ``s_k/s_{k+1}``; every estimator predicts; a pending accepted measurement is applied; an
+  :class:`Estimate` is emitted.
+
+Measurements are *transported* to the current frame with the size invariant ``z s = R``: a burst
+at mid-time ``t_b`` yields a size measurement ``R_m = z_m s(t_b)`` and the depth measurement fed to
+every estimator at later frames is ``R_m / s`` (exact under the model; removes the staleness of a
+held ``z_m``). See docs/estimation.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig, find_target
+from dffd.core.filters import CF1, CF2, DepthKF, Differentiator, KFNoise, LPVGains, LPVObserver
+from dffd.core.filters import cf2_gains as _cf2_gains
+from dffd.core.focus import FitConfig, PlanConfig, fit_burst, focus_cost
+from dffd.core.focus import plan_burst as _plan_burst
+from dffd.core.geometry import VelocityEstimator, camera_point, to_world
+from dffd.core.lens import Lens
+from drivers.frames import Frame
+
+from .types import FrameTag
+
+logger = logging.getLogger(__name__)
+
+TrackState = Literal["acquiring", "tracking", "lost"]
+EstimatorName = Literal["measured", "cf1", "cf2", "lpv", "kf"]
+ESTIMATORS: tuple[EstimatorName, ...] = ("measured", "cf1", "cf2", "lpv", "kf")
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class PipelineConfig:
+    """Estimation parameters (defaults documented in docs/estimation.md)."""
+
+    n_normals: int = 64  # Nl of (2)
+    search_px: int = 12  # half-length of the normal lines
+    best: EstimatorName = "lpv"
+    known_size_m: float | None = None  # enables CF1
+    settle_s: float = 5.0  # settling time: steady-state statistics start after it
+    burst_size: int = 3  # frames of a complete burst
+    magnification: Literal["thin_lens", "pinhole"] = "thin_lens"  # image distance v0 or f
+    transport_measurements: bool = True
+    # CF1 / CF2 (Lemma 1 from the noise densities)
+    cf1_k: float = 1.0  # rad/s
+    cf2_sigma_psi: float = 0.04  # m/s/√Hz
+    cf2_sigma_beta: float = 0.015  # m/s²/√Hz
+    cf2_sigma_z: float = 0.05  # m·√s
+    cf2_nominal_size_m: float | None = None  # None: mean of the first size measurements
+    cf2_size_bursts: int = 10  # ... over this many accepted bursts, then frozen (paper: fixed R)
+    warmup_bursts: int = 3  # CF/LPV states are seeded from the KF at the first accepted bursts
+    # LPV observer: error poles and the declared ρ range of the gain schedule
+    lpv_omega: float = 1.0  # rad/s
+    lpv_zeta: float = 0.7
+    rho_min: float = -2.0  # 1/s: ρ = ṙ/r = −ż/z; ±2/s covers 4 m/s at 2 m
+    rho_max: float = 2.0
+    kf_noise: KFNoise = field(default_factory=KFNoise)
+    differentiator_omega: float = 12.0  # rad/s, bandwidth of ṙ and of the velocity
+    # ψ_m for CF1/CF2: "step" = exact size difference over each step (its noise telescopes when
+    # the filter integrates it, and it has no lag); "differentiator" = the filtered ṙ (lags 2ζ/ω)
+    psi_source: Literal["step", "differentiator"] = "step"
+    max_gap_s: float = 2.0  # estimators restart after a gap without tracking longer than this
+    auto_acquire: bool = True
+    reacquire_every_frames: int = 5  # whole-frame search period while lost (it costs ~ms)
+    motion: Literal["similarity", "affine"] = "similarity"
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
+    plan: PlanConfig = field(default_factory=PlanConfig)
+
+
+@dataclass(frozen=True, slots=True)
+class Measurement:
+    """One burst: settings, costs, parabola fit and the depth measurement (``…/measurement``)."""
+
+    burst_id: int
+    t: float  # mid-time of the burst frames
+    frame_indices: tuple[int, ...]
+    focus_counts: tuple[int, ...]
+    v_mm: tuple[float, ...]
+    costs: tuple[float, ...]
+    cost_sigmas: tuple[float, ...]
+    alpha: float
+    v_hat_mm: float
+    residual: float
+    accepted: bool
+    reason: str
+    z_m: float | None
+    sigma_m: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """Everything known at one tracking frame (``…/estimate``)."""
+
+    frame_index: int
+    t: float
+    state: TrackState
+    depth_m: dict[str, float | None]  # measured, cf1, cf2, lpv, kf
+    measured_t: float | None  # burst mid-time of ``depth_m["measured"]``
+    best: EstimatorName
+    z_m: float | None  # the best estimator's depth
+    sigma_m: float | None
+    beta_m_s: float | None  # CF2 bias estimate β̂
+    lpv_b_m_s: float | None  # LPV disturbance estimate
+    size_m: float | None  # R̂ = ẑ s
+    r_px: float
+    rho: float | None  # ṙ/r over the last step, 1/s
+    centroid_px: tuple[float, float]
+    position_m: Vec3 | None  # camera frame
+    velocity_m_s: Vec3 | None
+    position_world_m: Vec3 | None
+    velocity_world_m_s: Vec3 | None
+    pan_deg: float
+    tilt_deg: float
+    focus_counts: int | None
+    inlier_fraction: float
+
+
+@dataclass(frozen=True, slots=True)
+class PipelineOutput:
+    """Result of one :meth:`Pipeline.process` call."""
+
+    state: TrackState
+    estimate: Estimate | None
+    measurement: Measurement | None
+    observation: BoundaryObservation | None
+
+
+@dataclass(slots=True)
+class _BurstSample:
+    index: int
+    t: float
+    counts: int
+    v_mm: float
+    g: float
+    sigma_g: float
+
+
+class Pipeline:
+    """Tagged frames → estimates; the scheduler asks it for predictions and burst plans."""
+
+    _cf1: CF1
+    _cf2: CF2
+    _lpv: LPVObserver
+    _kf: DepthKF
+    _diff: Differentiator
+    _vel_cam: VelocityEstimator
+    _vel_world: VelocityEstimator
+    _size_meas: float | None  # R_m of the last accepted burst
+    _cf2_size: float | None
+    _n_accepted: int
+    _pending: Measurement | None
+    _prev: tuple[float, float] | None  # (t, s) of the last tracking frame
+    _initialised: bool
+    _last_measured: float | None
+    _prev_pos_t: float | None
+    _burst: list[_BurstSample]
+    _burst_id: int | None
+    _burst_frames: int
+
+    def __init__(self, config: PipelineConfig, lens: Lens) -> None:
+        self.config = config
+        self.lens = lens
+        tcfg = config.tracker
+        if tcfg.n_normals != config.n_normals or tcfg.search_px != config.search_px:
+            tcfg = replace(tcfg, n_normals=config.n_normals, search_px=config.search_px)
+        self._tracker = ContourTracker(tcfg)
+        k1, k2 = _cf2_gains(config.cf2_sigma_psi, config.cf2_sigma_beta, config.cf2_sigma_z)
+        self.cf2_gains = (k1, k2)
+        self.lpv_gains = LPVGains.from_poles(
+            config.lpv_omega, config.lpv_zeta, config.rho_min, config.rho_max
+        )
+        self._state: TrackState = "acquiring"
+        self._hold = not config.auto_acquire
+        self._pending_roi: tuple[int, int, int, int] | None = None
+        self._known_size = config.known_size_m
+        self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
+        self._frames_since_search = 0
+        self._reset_estimators()
+
+    # -- public API -------------------------------------------------------------------------
+    @property
+    def state(self) -> TrackState:
+        """acquiring / tracking / lost."""
+        return self._state
+
+    def acquire_roi(self, x: int, y: int, w: int, h: int) -> None:
+        """Acquire the target inside this ROI on the next frame (drops the current target)."""
+        if w <= 0 or h <= 0:
+            raise ValueError(f"ROI needs a positive size, got {w}x{h}")
+        self._pending_roi = (int(x), int(y), int(w), int(h))
+        self._hold = False
+        self._tracker.reset()
+        self._state = "acquiring"
+        self._reset_estimators()
+
+    def release(self) -> None:
+        """Stop tracking; stay in ``acquiring`` without searching until :meth:`acquire_roi`."""
+        self._tracker.reset()
+        self._pending_roi = None
+        self._hold = True
+        self._state = "acquiring"
+        self._last_box = None
+        self._reset_estimators()
+
+    def set_known_size(self, meters: float | None) -> None:
+        """Set (enables CF1) or clear the target's known size."""
+        if meters is not None and not meters > 0:
+            raise ValueError(f"known size must be > 0 m, got {meters}")
+        self._known_size = meters
+        self._cf1 = CF1(self.config.cf1_k)
+
+    def predicted_depth(self) -> tuple[float, float] | None:
+        """(ẑ of the best estimator, σ) at the last tracking frame, or None before the first fix.
+
+        σ is the Kalman filter's (the only estimator with a covariance), a fair proxy for all.
+        """
+        z = self._depth(self.config.best)
+        if z is None or self._kf.sigma is None:
+            return None
+        return z, self._kf.sigma
+
+    def plan_burst(self, current_counts: int) -> tuple[int, int, int]:
+        """Three focus counts for the next burst, ordered to minimise motor travel."""
+        pred = self.predicted_depth()
+        z, s = (None, None) if pred is None else pred
+        return _plan_burst(self.lens, current_counts, z, s, self.config.plan)
+
+    def tracking_counts(self) -> int | None:
+        """Focus counts that focus the predicted depth (for tracking frames), or None."""
+        pred = self.predicted_depth()
+        return None if pred is None else self.lens.counts_for_depth(pred[0])
+
+    def process(self, frame: Frame, tag: FrameTag) -> PipelineOutput:
+        """Consume one frame and its tag."""
+        measurement: Measurement | None = None
+        if tag.role != "burst" or (
+            self._burst_id is not None and tag.burst is not None and tag.burst[0] != self._burst_id
+        ):
+            measurement = self._finish_burst()
+        if not self._tracker.active and not self._try_acquire(frame):
+            return PipelineOutput(self._state, None, measurement, None)
+        motion = "translation" if tag.role == "transit" or tag.focus_counts is None else (
+            self.config.motion
+        )
+        obs = self._tracker.update(frame.image, frame.t, motion)
+        if self._tracker.lost:
+            logger.info("target lost at frame %d (t=%.3f)", frame.index, frame.t)
+            c = obs.centroid
+            self._last_box = (c[0], c[1], obs.r_px)
+            self._tracker.reset()
+            self._state = "lost"
+            self._discard_burst()
+            return PipelineOutput(self._state, None, measurement, obs)
+        if not obs.ok:
+            return PipelineOutput(self._state, None, measurement, obs)
+        c = obs.centroid
+        self._last_box = (c[0], c[1], obs.r_px)
+        if tag.role == "burst" and tag.focus_counts is not None:
+            done = self._add_burst_sample(frame, tag, obs)
+            if done is not None:
+                measurement = done if measurement is None else measurement
+            return PipelineOutput(self._state, None, measurement, obs)
+        if tag.role != "track" or tag.focus_counts is None:
+            return PipelineOutput(self._state, None, measurement, obs)
+        estimate = self._track_frame(frame, tag, obs)
+        return PipelineOutput(self._state, estimate, measurement, obs)
+
+    # -- acquisition --------------------------------------------------------------------------
+    def _try_acquire(self, frame: Frame) -> bool:
+        img = frame.image
+        gray: npt.NDArray[np.uint8] = np.ascontiguousarray(
+            img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), dtype=np.uint8
+        )
+        rois: list[tuple[int, int, int, int] | None] = []
+        if self._pending_roi is not None:
+            rois.append(self._pending_roi)
+        elif self._hold:
+            return False
+        else:
+            if self._last_box is not None:
+                cx, cy, r = self._last_box
+                half = 2.0 * r + 3 * self.config.search_px
+                rois.append((int(cx - half), int(cy - half), int(2 * half), int(2 * half)))
+            self._frames_since_search += 1
+            if self._last_box is None or (
+                self._frames_since_search >= self.config.reacquire_every_frames
+            ):
+                self._frames_since_search = 0
+                rois.append(None)
+        for roi in rois:
+            poly = find_target(gray, roi, self._tracker.config.min_radius_px)
+            if poly is not None and self._tracker.start(gray, poly, frame.t):
+                logger.info("target acquired at frame %d (roi=%s)", frame.index, roi)
+                self._pending_roi = None
+                self._state = "tracking"
+                return True
+        return False
+
+    # -- bursts ---------------------------------------------------------------------------------
+    def _add_burst_sample(
+        self, frame: Frame, tag: FrameTag, obs: BoundaryObservation
+    ) -> Measurement | None:
+        assert tag.focus_counts is not None
+        bid = tag.burst[0] if tag.burst is not None else -1
+        if self._burst_id is None:
+            self._burst_id = bid
+        cost = focus_cost(obs.peak_sq, self._tracker.config.trim_fraction)
+        if cost is not None:
+            self._burst.append(
+                _BurstSample(frame.index, frame.t, tag.focus_counts,
+                             self.lens.v_from_counts(tag.focus_counts), cost[0], cost[1])
+            )
+        self._burst_frames += 1
+        if self._burst_frames >= self.config.burst_size:
+            return self._finish_burst()
+        return None
+
+    def _discard_burst(self) -> None:
+        self._burst = []
+        self._burst_id = None
+        self._burst_frames = 0
+
+    def _finish_burst(self) -> Measurement | None:
+        if self._burst_id is None:
+            return None
+        samples, bid = self._burst, self._burst_id
+        self._discard_burst()
+        if not samples:
+            return None
+        t_mid = float(np.mean([s.t for s in samples]))
+        fit = fit_burst([s.v_mm for s in samples], [s.g for s in samples],
+                        [s.sigma_g for s in samples], self.lens, self.config.fit)
+        if len(samples) < 3 and fit.accepted:  # pragma: no cover - fit_burst rejects these
+            raise AssertionError("burst with fewer than three samples accepted")
+        m = Measurement(
+            burst_id=bid,
+            t=t_mid,
+            frame_indices=tuple(s.index for s in samples),
+            focus_counts=tuple(s.counts for s in samples),
+            v_mm=tuple(s.v_mm for s in samples),
+            costs=tuple(s.g for s in samples),
+            cost_sigmas=tuple(s.sigma_g for s in samples),
+            alpha=fit.alpha,
+            v_hat_mm=fit.v_hat_mm,
+            residual=fit.residual,
+            accepted=fit.accepted,
+            reason=fit.reason,
+            z_m=fit.z_m,
+            sigma_m=fit.sigma_m,
+        )
+        if fit.accepted:
+            self._pending = m
+        else:
+            logger.debug("burst %d rejected: %s", bid, fit.reason)
+        return m
+
+    # -- estimators -----------------------------------------------------------------------------
+    def _reset_estimators(self) -> None:
+        self._reset_filters_keep_tracking()
+        self._burst = []
+        self._burst_id = None
+        self._burst_frames = 0
+
+    def _image_distance_mm(self, counts: int) -> float:
+        if self.config.magnification == "pinhole":
+            return self.lens.focal_length_mm
+        return self.lens.v_from_counts(counts)
+
+    def _depth(self, name: EstimatorName) -> float | None:
+        if not self._initialised:
+            return None
+        if name == "cf1":
+            return self._cf1.z if self._known_size is not None else None
+        if name == "cf2":
+            return self._cf2.z
+        if name == "lpv":
+            return self._lpv.z
+        if name == "kf":
+            return self._kf.z
+        return self._last_measured
+
+    def _track_frame(self, frame: Frame, tag: FrameTag, obs: BoundaryObservation) -> Estimate:
+        assert tag.focus_counts is not None
+        cfg = self.config
+        t = frame.t
+        f_img = self._image_distance_mm(tag.focus_counts)
+        s = obs.r_px * self.lens.pixel_pitch_mm / f_img  # = R / z
+        rho: float | None = None
+        if self._prev is not None and t - self._prev[0] > cfg.max_gap_s:
+            self._reset_filters_keep_tracking()
+        dt = 0.0 if self._prev is None else t - self._prev[0]
+        ratio = 1.0 if self._prev is None else self._prev[1] / s
+        if dt > 0:
+            rho = math.log(1.0 / ratio) / dt
+        _, sdot = self._diff.update(s, dt)
+        self._last_measured = None
+        measured_t: float | None = None
+        if self._initialised and dt > 0:
+            self._step_filters(dt, s, sdot, rho if rho is not None else 0.0, ratio)
+        pending, self._pending = self._pending, None
+        if pending is not None and pending.z_m is not None and pending.sigma_m is not None:
+            s_b = self._size_at(pending.t, t, s)
+            size_m = pending.z_m * s_b
+            self._size_meas = size_m
+            self._last_measured = pending.z_m
+            measured_t = pending.t
+            y_now = size_m / s
+            sigma_now = pending.sigma_m * y_now / pending.z_m
+            kf_sigma = max(sigma_now, cfg.kf_noise.sigma_v_mm * abs(
+                self.lens.dz_dv(self.lens.v_from_depth(max(self._kf.z or y_now, 0.1)))))
+            self._n_accepted += 1
+            if self._n_accepted <= cfg.cf2_size_bursts and cfg.cf2_nominal_size_m is None:
+                n = self._n_accepted
+                prev_size = self._cf2_size if self._cf2_size is not None else size_m
+                self._cf2_size = prev_size + (size_m - prev_size) / n  # running mean
+            if not self._initialised:
+                self._kf.reset(y_now, max(sigma_now, 1e-3))
+                self._initialised = True
+            else:
+                self._kf.update(y_now, kf_sigma)
+            if self._n_accepted <= cfg.warmup_bursts:
+                # warm start: the first bursts (the first one spans the whole working range and
+                # is coarse) seed the fixed-gain filters with the KF's variance-weighted estimate
+                z0 = self._kf.z if self._kf.z is not None else y_now
+                self._cf1.reset(z0)
+                self._cf2.reset(z0)
+                self._lpv.reset(z0)
+        self._prev = (t, s)
+        return self._make_estimate(
+            frame, tag, obs, s=s, rho=rho, measured_t=measured_t, f_img=f_img
+        )
+
+    def _size_at(self, t_b: float, t_now: float, s_now: float) -> float:
+        """Normalised size at the burst mid-time, ln-interpolated between tracking frames."""
+        if not self.config.transport_measurements or self._prev is None:
+            return s_now
+        t0, s0 = self._prev
+        if t_now <= t0:
+            return s_now
+        w = min(max((t_b - t0) / (t_now - t0), 0.0), 1.0)
+        return math.exp((1 - w) * math.log(s0) + w * math.log(s_now))
+
+    def _reset_filters_keep_tracking(self) -> None:
+        cfg = self.config
+        self._cf1 = CF1(cfg.cf1_k)
+        self._cf2 = CF2(*self.cf2_gains)
+        self._lpv = LPVObserver(self.lpv_gains)
+        self._kf = DepthKF(cfg.kf_noise)
+        self._diff = Differentiator(cfg.differentiator_omega)
+        self._vel_cam = VelocityEstimator(cfg.differentiator_omega / 3)
+        self._vel_world = VelocityEstimator(cfg.differentiator_omega / 3)
+        self._size_meas = None  # R_m of the last accepted burst
+        self._cf2_size = cfg.cf2_nominal_size_m
+        self._n_accepted = 0
+        self._pending = None
+        self._prev = None  # (t, s) of the last tracking frame
+        self._initialised = False
+        self._last_measured = None
+        self._prev_pos_t = None
+
+    def _step_filters(self, dt: float, s: float, sdot: float, rho: float, ratio: float) -> None:
+        assert self._size_meas is not None
+        assert self._prev is not None
+        # the last size measurement seen at the image size: y(τ) = R_m / s(τ) = y0 e^{−ρτ}
+        y0 = self._size_meas / self._prev[1]
+        lam = -rho
+        if self.config.psi_source == "step":
+            inv_rate = (1.0 / s - 1.0 / self._prev[1]) / dt  # d(1/s)/dt over the step, exact
+        else:
+            inv_rate = -sdot / (s * s)
+        if self._known_size is not None:
+            self._cf1.step(dt, y0, inv_rate * self._known_size, lam)
+        cf2_size = self._cf2_size if self._cf2_size is not None else self._size_meas
+        self._cf2.step(dt, y0, inv_rate * cf2_size, lam)
+        self._lpv.step(dt, rho, y0, lam)
+        self._kf.predict(ratio, dt)
+
+    def _make_estimate(
+        self,
+        frame: Frame,
+        tag: FrameTag,
+        obs: BoundaryObservation,
+        *,
+        s: float,
+        rho: float | None,
+        measured_t: float | None,
+        f_img: float,
+    ) -> Estimate:
+        cfg = self.config
+        depth: dict[str, float | None] = {name: self._depth(name) for name in ESTIMATORS}
+        z = depth[cfg.best]
+        h, w = frame.image.shape[:2]
+        dt = 0.0 if self._prev_pos_t is None else frame.t - self._prev_pos_t
+        pos = pos_w = vel = vel_w = None
+        if z is not None:
+            pos = camera_point(obs.centroid, z, (w, h), self.lens.pixel_pitch_mm, f_img)
+            pos_w = to_world(pos, tag.pan_deg, tag.tilt_deg)
+            vel = self._vel_cam.update(pos, dt)
+            vel_w = self._vel_world.update(pos_w, dt)
+            self._prev_pos_t = frame.t
+        return Estimate(
+            frame_index=frame.index,
+            t=frame.t,
+            state=self._state,
+            depth_m=depth,
+            measured_t=measured_t,
+            best=cfg.best,
+            z_m=z,
+            sigma_m=self._kf.sigma if z is not None else None,
+            beta_m_s=self._cf2.beta if self._initialised else None,
+            lpv_b_m_s=self._lpv.b if self._initialised else None,
+            size_m=None if z is None else z * s,
+            r_px=obs.r_px,
+            rho=rho,
+            centroid_px=obs.centroid,
+            position_m=pos,
+            velocity_m_s=vel,
+            position_world_m=pos_w,
+            velocity_world_m_s=vel_w,
+            pan_deg=tag.pan_deg,
+            tilt_deg=tag.tilt_deg,
+            focus_counts=tag.focus_counts,
+            inlier_fraction=obs.inlier_fraction,
+        )
+
