@@ -164,19 +164,25 @@ class SimCameraServer:
     def _open_pty(self) -> None:
         assert self._loop is not None
         master, slave = os.openpty()
-        # Fully raw on both ends: no echo, no CR/NL translation, no signals (DESIGN §5).
-        tty.setraw(master)
-        tty.setraw(slave)
-        os.set_blocking(master, False)
+        try:
+            # Fully raw on both ends: no echo, no CR/NL translation, no signals (DESIGN §5).
+            tty.setraw(master)
+            tty.setraw(slave)
+            os.set_blocking(master, False)
+            slave_name = os.ttyname(slave)
+            if self.link_path is not None:
+                tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+                tmp.symlink_to(slave_name)
+                tmp.replace(self.link_path)  # atomic: the name never points nowhere while open
+        except OSError:
+            os.close(master)
+            os.close(slave)
+            raise
         self._master, self._slave = master, slave
-        self._slave_name = os.ttyname(slave)
+        self._slave_name = slave_name
         self.port_generation += 1
-        if self.link_path is not None:
-            tmp = self.link_path.with_name(f".{self.link_path.name}.{os.getpid()}.tmp")
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
-            tmp.symlink_to(self._slave_name)
-            tmp.replace(self.link_path)  # atomic: the name never points nowhere while open
         self._loop.add_reader(master, self._on_readable)
         for wanted, future in self._generation_waiters:
             if wanted <= self.port_generation and not future.done():
