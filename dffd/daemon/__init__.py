@@ -1,0 +1,1 @@
+"""The daemon's asyncio shell: app, embedded broker, durable log, systemd notification."""
