@@ -15,6 +15,7 @@ from drivers.sim.device import (
     DEFAULT_ZOOM_SPEED_COUNTS_S,
     FIELD_PERIOD_S,
     INPUT_QUEUE_PACKETS,
+    RX_WIRE_MAX_BYTES,
     DeviceConfig,
     Emission,
     VirtualClock,
@@ -573,3 +574,12 @@ def test_commands_fed_one_byte_at_a_time() -> None:
         cam.send(bytes((byte,)))
         cam.run_for(0.001)
     assert hexes(cam.run_for(1.0)) == ["90 41 FF", "90 51 FF"]
+
+
+def test_bytes_faster_than_the_baud_rate_overflow_the_receive_buffer() -> None:
+    cam = InProcessCamera(DeviceConfig(pace=True))
+    inquiry = codec.encode_request(codec.PowerInquiry(), 1)
+    for _ in range(2000):  # 10 000 bytes at once: over 10 s of wire time at 9600 baud
+        cam.send(inquiry)
+    assert cam.device.stats.input_overflow > 0
+    assert cam.device.stats.bytes_in <= RX_WIRE_MAX_BYTES

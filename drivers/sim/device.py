@@ -90,6 +90,9 @@ INPUT_QUEUE_PACKETS = 16
 # Reassembler cap: packets of 17…32 bytes are reported as message-length errors, longer runs
 # without a terminator are dropped as noise.
 RX_REASSEMBLY_CAP = 32
+# Bytes still "on the wire" towards the camera (pacing): a UART/pty buffer's worth; a controller
+# writing faster than the baud rate loses the excess, as it would on a real line.
+RX_WIRE_MAX_BYTES = 4096
 # Output bytes not yet handed to the transport (pacing/stalls); beyond this the oldest go.
 TX_BACKLOG_PACKETS = 256
 
@@ -184,6 +187,7 @@ class ViscaDevice:
         self._connected = True  # the port exists (False while "unplugged")
         self._reassembler = codec.Reassembler(max_packet_len=RX_REASSEMBLY_CAP)
         self._rx_wire: deque[tuple[float, bytes]] = deque()
+        self._rx_wire_bytes = 0
         self._rx_free_at = -math.inf
         self._inbox: deque[tuple[float, bytes]] = deque()
         self._last_field = -(2**62)
@@ -237,6 +241,7 @@ class ViscaDevice:
         self._power_down(t)
         self._tx.clear()
         self._rx_wire.clear()
+        self._rx_wire_bytes = 0
 
     def reconnect(self, t: float) -> None:
         """The port is back at ``t``: the camera powers up again (and sends Network Change)."""
@@ -261,7 +266,12 @@ class ViscaDevice:
         data = self.faults.mangle(data, "rx")
         if not data:
             return
+        if self._rx_wire_bytes + len(data) > RX_WIRE_MAX_BYTES:
+            self.stats.input_overflow += 1
+            logger.debug("sim camera: receive buffer full, lost %d bytes", len(data))
+            return
         self.stats.bytes_in += len(data)
+        self._rx_wire_bytes += len(data)
         if self.config.pace:
             start = max(t, self._rx_free_at)
             self._rx_free_at = start + len(data) * self.config.byte_time_s
@@ -300,6 +310,7 @@ class ViscaDevice:
         # Order at equal times: bytes arrive, scheduled events fire, then the field's message.
         if self._rx_wire and self._rx_wire[0][0] <= when:
             arrived, data = self._rx_wire.popleft()
+            self._rx_wire_bytes -= len(data)
             self._on_bytes(data, arrived)
             return
         if self._events and self._events[0][0] <= when:
