@@ -51,16 +51,20 @@ class TrajectorySpec(_Model):
 
 
 class CameraSpec(_Model):
-    """Simulated-camera parameters the scenario sets on top of ``config/sim-camera.toml``."""
+    """Simulated-camera parameters the scenario sets on top of ``config/sim-camera.toml``.
+
+    Unset (None) keeps the camera config's value.
+    """
 
     config: str = "config/sim-camera.toml"  # relative to the repository root
     lens: str = "config/lenses/sim-evi-d100.toml"  # what the estimator is told (the lens table)
-    fps: float = Field(30.0, gt=0.0, le=120.0)
-    read_noise_dn: float = Field(2.0, ge=0.0)
-    capture_latency_frames: int = Field(1, ge=0, le=10)
-    focus_jitter_counts: float = Field(0.0, ge=0.0)
-    motion_blur: bool = False
-    # Extra keys handed verbatim to the simulator's config (names as in drivers/sim/config.py).
+    fps: float | None = Field(None, gt=0.0, le=120.0)
+    read_noise_dn: float | None = Field(None, ge=0.0)
+    capture_latency_frames: float | None = Field(None, ge=0.0, le=10.0)
+    focus_jitter_counts: float | None = Field(None, ge=0.0)
+    motion_blur: bool | None = None
+    # Extra dotted keys handed to the simulator's config (names as in drivers/sim/config.py),
+    # e.g. ``"lens.residual_blur_px" = 0.8``.
     overrides: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -105,6 +109,10 @@ class Scenario(_Model):
     baselines: BaselineSpec = Field(default_factory=BaselineSpec)
     thresholds: ThresholdSpec = Field(default_factory=ThresholdSpec)
     cases: tuple[CaseSpec, ...] = ()
+    # Overrides of dffd.scheduler.SchedulerConfig / dffd.core.pipeline.PipelineConfig fields for
+    # experiments (default: none — the bench measures the product's defaults).
+    scheduler: dict[str, Any] = Field(default_factory=dict)
+    estimator: dict[str, Any] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _check(self) -> Scenario:
@@ -128,6 +136,29 @@ class Scenario(_Model):
             except ValidationError as exc:
                 raise ScenarioError(f"scenario {self.name} case {case.name}: {exc}") from exc
         return out
+
+    def with_settings(self, assignments: list[str]) -> Scenario:
+        """A copy with ``section.key=value`` assignments (value parsed as TOML, else a string).
+
+        Sections: ``scheduler``, ``estimator``, ``camera`` (simulator dotted keys go through
+        ``camera.overrides``: ``camera.lens.residual_blur_px=0.8``).
+        """
+        sched, est, cam = dict(self.scheduler), dict(self.estimator), dict(self.camera.overrides)
+        for item in assignments:
+            key, sep, raw = item.partition("=")
+            section, dot, name = key.partition(".")
+            if not sep or not dot or section not in ("scheduler", "estimator", "camera"):
+                raise ScenarioError(
+                    f"--set {item!r}: expected scheduler.KEY=VALUE, estimator.KEY=VALUE or "
+                    "camera.SECTION.KEY=VALUE"
+                )
+            try:
+                value: Any = tomllib.loads(f"v = {raw}")["v"]
+            except tomllib.TOMLDecodeError:
+                value = raw
+            {"scheduler": sched, "estimator": est, "camera": cam}[section][name] = value
+        camera = self.camera.model_copy(update={"overrides": cam})
+        return self.model_copy(update={"scheduler": sched, "estimator": est, "camera": camera})
 
     def shortened(self, duration_s: float) -> Scenario:
         """A copy running ``duration_s`` per case (settling scaled down to fit), for smoke tests."""

@@ -1,0 +1,518 @@
+"""FAST mode: simulator, scheduler and estimation core in lock-step *virtual* time.
+
+A discrete-event loop over one virtual clock (injected into the simulator's
+:class:`~drivers.sim.state.CameraState`). Events, in time order:
+
+* the simulated VISCA device (:class:`drivers.sim.device.ViscaDevice`, wire pacing at 9600 baud,
+  one message per video field, motors at their simulated speeds) emits replies → the
+  :class:`~dffd.scheduler.Scheduler` hears Completions and positions when they would arrive;
+* the scheduler's wake-ups → its actions are encoded and written to the device;
+* a frame is *delivered* ``exposure/2 + latency`` after its exposure mid-time → the simulator
+  renders it at its exposure time (``render(t)``), the scheduler tags it, the
+  :class:`~dffd.core.pipeline.Pipeline` processes it, and the core's feedback (σ, burst plan,
+  centroid) goes back to the scheduler.
+
+Nothing waits in real time, so minutes of scenario take seconds. The estimator sees only frames,
+tags and the lens table; the bench alone reads the simulator's ground truth to score.
+
+Two other policies run on the same scenario and seed for the baselines that need their own frames:
+``sweep`` (classic depth from focus: full focus sweeps, one clean frame per setting) and the
+ArUco pass (the dffd policy with the target swapped for an ArUco marker).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from dffd.core.lens import Lens
+from dffd.core.pipeline import Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.types import FrameTag
+from dffd.scheduler import (
+    Action,
+    FocusInquiry,
+    FocusMove,
+    Scheduler,
+    SchedulerConfig,
+    depth_rate_limit,
+)
+from drivers.frames import Frame
+from drivers.sim.device import ViscaDevice
+from hil.baselines import (
+    ArucoBaseline,
+    find_blob,
+    known_size_depth,
+    square_side_for_size,
+    sweep_depth,
+    tenengrad,
+)
+from hil.results import BurstRecord, RunResult
+from hil.scenario import Scenario, TrajectorySpec
+from hil.simbuild import T_FIRST_FRAME_S, SimSession, build_session
+from hil.vlink import LinkEvent, VirtualLink
+
+logger = logging.getLogger(__name__)
+
+Policy = Literal["dffd", "sweep", "aruco"]
+Progress = Callable[[float], None]  # fraction of the session's scenario time done
+
+# Ground truth per frame kept for scoring measurements of past bursts.
+TRUTH_HISTORY_FRAMES = 256
+# The initial tracking focus (before any depth is known): the middle of the working range.
+INITIAL_FOCUS_DEPTH_M = 4.0
+# Sweep window half-size (px) around the target: this many equivalent radii plus a margin, so the
+# whole defocused edge stays inside (largest blur radius at the range ends ≈ target radius).
+SWEEP_WINDOW_RADII = 2.5
+SWEEP_WINDOW_MARGIN_PX = 12
+SWEEP_INITIAL_HALF_PX = 120
+
+
+@dataclass
+class _Feedback:
+    """What the loop tells the scheduler after a frame."""
+
+    sigma: float | None
+    plan: tuple[int, int, int] | None
+    centroid: tuple[float, float] | None
+
+
+def run_session(
+    scenario: Scenario,
+    case: str,
+    trajectory: TrajectorySpec,
+    seed: int,
+    *,
+    policy: Policy = "dffd",
+    duration_s: float | None = None,
+    progress: Progress | None = None,
+    recorder: FrameSink | None = None,
+) -> RunResult:
+    """Run one case of ``scenario`` with ``seed`` in virtual time and return what was measured."""
+    duration = scenario.duration_s if duration_s is None else duration_s
+    shape = "aruco" if policy == "aruco" else scenario.target.shape
+    session = build_session(scenario, trajectory, seed, target_shape=shape)
+    runner = _Runner(scenario, case, seed, session, policy, duration, progress, recorder)
+    return runner.run()
+
+
+class FrameSink:
+    """Receives every frame with its tag and truth (``--record``); see :mod:`hil.runner`."""
+
+    def add(self, frame: Frame, tag: FrameTag, truth_z_m: float) -> None:
+        """Store one frame."""
+        raise NotImplementedError
+
+
+def scheduler_config(
+    session: SimSession, lens: Lens, burst_every_frames: int, overrides: dict[str, Any]
+) -> SchedulerConfig:
+    """The scheduler configuration the daemon would build for this camera (+ overrides)."""
+    base = SchedulerConfig(
+        fps=session.fps,
+        exposure_s=session.exposure_s,
+        capture_latency_frames=math.ceil(session.latency_frames),
+        burst_every_frames=burst_every_frames,
+        focus_speed_counts_per_s=session.device_config.focus_speed_counts_s,
+        baudrate=session.device_config.baud,
+        command_slot_s=session.device_config.field_period_s,
+        focal_length_mm=lens.focal_length_mm,
+        pixel_pitch_mm=lens.pixel_pitch_mm,
+        frame_size=session.frame_size,
+    )
+    return dataclasses.replace(base, **overrides) if overrides else base
+
+
+def pipeline_config(scenario: Scenario) -> PipelineConfig:
+    """The estimator configuration: the daemon's defaults plus what the scenario states."""
+    base = PipelineConfig(known_size_m=scenario.target.known_size_m, settle_s=scenario.settle_s)
+    return dataclasses.replace(base, **scenario.estimator) if scenario.estimator else base
+
+
+class _Runner:
+    def __init__(  # noqa: PLR0917 - private, called once from run_session
+        self,
+        scenario: Scenario,
+        case: str,
+        seed: int,
+        session: SimSession,
+        policy: Policy,
+        duration: float,
+        progress: Progress | None,
+        recorder: FrameSink | None,
+    ) -> None:
+        self.scenario = scenario
+        self.session = session
+        self.policy = policy
+        self.progress = progress
+        self.recorder = recorder
+        self.lens = Lens.from_toml(session.lens_path)
+        self.device = ViscaDevice(session.state, session.device_config)
+        self.link = VirtualLink(self.device)
+        self.pipeline = Pipeline(pipeline_config(scenario), self.lens)
+        from dffd.config import SchedulerConfig as DaemonSchedulerConfig
+
+        every = DaemonSchedulerConfig().burst_every_n_frames
+        self.sched_config = scheduler_config(session, self.lens, every, scenario.scheduler)
+        self.scheduler = Scheduler(self.sched_config)
+        self.scheduler.set_track_focus(self.lens.counts_for_depth(INITIAL_FOCUS_DEPTH_M))
+        mode = "fast" if policy == "dffd" else f"fast-{policy}"
+        self.result = RunResult(
+            scenario=scenario.name,
+            case=case,
+            seed=seed,
+            mode=mode,
+            duration_s=duration,
+            settle_s=scenario.settle_s,
+            t_start=T_FIRST_FRAME_S,
+            best=self.pipeline.config.best,
+        )
+        self.n_frames = round(duration * session.fps)
+        self.truth: dict[int, float] = {}
+        self._truth_order: deque[int] = deque()
+        self._sweep_owned_move: int | None = None
+        self._aruco: ArucoBaseline | None = None
+        if policy == "aruco":
+            side = session.world.shape.aruco_marker_side_m
+            self._aruco = ArucoBaseline(
+                marker_side_m=side if side else square_side_for_size(scenario.target.size_m),
+                focal_length_px=self.lens.focal_length_mm / self.lens.pixel_pitch_mm,
+                frame_size=session.frame_size,
+            )
+        self._sweep = _SweepState(self.lens, scenario.baselines.full_sweep_settings)
+        self._sweep.exposure_s = session.exposure_s
+        self.result.notes.extend(session.notes)
+
+    # -- main loop ---------------------------------------------------------------------------
+    def run(self) -> RunResult:
+        wall0 = time.perf_counter()
+        now = 0.0
+        self.session.set_time(now)
+        self.device.power_up(now)
+        k = 0
+        while k < self.n_frames:
+            t_frame = self.session.delivery_time(k)
+            candidates = [t_frame]
+            wake = self._wakeup()
+            if wake is not None and wake > now:
+                candidates.append(wake)
+            deadline = self.link.next_deadline()
+            if deadline is not None:
+                candidates.append(max(deadline, now))
+            now = min(candidates)
+            self.session.set_time(now)
+            for event in self.link.poll(now):
+                self._dispatch(event)
+            if now >= t_frame:
+                self._frame(k)
+                k += 1
+                if self.progress is not None and k % 30 == 0:
+                    self.progress(k / self.n_frames)
+            self._act(now)
+        self.result.wall_s = time.perf_counter() - wall0
+        self._finish()
+        return self.result
+
+    def _wakeup(self) -> float | None:
+        if self.policy == "sweep":
+            times = [self.scheduler.next_wakeup(), self._sweep.wakeup]
+            valid = [t for t in times if t is not None]
+            return min(valid) if valid else None
+        return self.scheduler.next_wakeup()
+
+    def _act(self, now: float) -> None:
+        for action in self.scheduler.next_actions(now):
+            if self.policy == "sweep" and isinstance(action, FocusMove | FocusInquiry):
+                self._swallow_focus_action(action, now)
+                continue
+            self.link.send(action, now)
+        if self.policy == "sweep":
+            move = self._sweep.next_move(now)
+            if move is not None:
+                self.link.send(move, now)
+
+    def _swallow_focus_action(self, action: Action, now: float) -> None:
+        # In the sweep pass the scheduler only steers pan/tilt: its single initial focus move is
+        # reported done at once so it sits in "track" without a plan (no bursts, no inquiries).
+        if isinstance(action, FocusMove):
+            self.scheduler.on_focus_completed(action.move_id, now)
+
+    def _dispatch(self, event: LinkEvent) -> None:
+        s = self.scheduler
+        match event.kind:
+            case "focus_done":
+                assert event.move_id is not None
+                if self.policy == "sweep":
+                    self._sweep.on_done(event.move_id, event.t)
+                else:
+                    s.on_focus_completed(event.move_id, event.t)
+            case "focus_failed":
+                if event.move_id is None:
+                    s.on_focus_inquiry_failed(event.t)
+                elif self.policy == "sweep":
+                    self._sweep.on_failed(event.move_id, event.t)
+                else:
+                    s.on_focus_failed(event.move_id, event.t)
+            case "focus_position":
+                assert event.counts is not None
+                s.on_focus_position(event.t, event.counts)
+            case "pt_done":
+                s.on_pan_tilt_done(event.t)
+            case "pt_failed":
+                s.on_pan_tilt_failed(event.t)
+            case "pt_position":
+                assert event.pan_deg is not None
+                assert event.tilt_deg is not None
+                s.on_pan_tilt_position(event.t, event.pan_deg, event.tilt_deg)
+                s.on_pan_tilt_done(event.t)
+
+    # -- frames --------------------------------------------------------------------------------
+    def _frame(self, index: int) -> None:
+        t_mid = self.session.frame_time(index)
+        tag = self.scheduler.on_frame(index, t_mid)
+        frame, truth = self.session.render(index)
+        truth_z = truth.z_m
+        self._remember_truth(index, truth_z)
+        res = self.result
+        res.frames += 1
+        if self.policy == "sweep":
+            tag = self._sweep.tag(t_mid, tag)
+            res.frames_by_role[tag.role] = res.frames_by_role.get(tag.role, 0) + 1
+            self._sweep_frame(frame, tag, truth_z)
+            return
+        res.frames_by_role[tag.role] = res.frames_by_role.get(tag.role, 0) + 1
+        if self.recorder is not None:
+            self.recorder.add(frame, tag, truth_z)
+        c0 = time.thread_time()
+        out = self.pipeline.process(frame, tag)
+        res.core_cpu_s.append(time.thread_time() - c0)
+        self._score(out, frame, tag, truth_z)
+        fb = self._feedback(out, tag)
+        self.scheduler.on_estimate(
+            t_mid,
+            sigma_m=fb.sigma,
+            plan=fb.plan,
+            centroid_px=fb.centroid,
+            pan_deg=tag.pan_deg,
+            tilt_deg=tag.tilt_deg,
+        )
+
+    def _feedback(self, out: PipelineOutput, tag: FrameTag) -> _Feedback:
+        obs = out.observation
+        centroid = obs.centroid if obs is not None and obs.ok else None
+        if self.pipeline.state != "tracking":
+            return _Feedback(None, None, centroid)
+        pred = self.pipeline.predicted_depth()
+        here = self.scheduler.focus_counts
+        if here is None:
+            here = tag.focus_counts if tag.focus_counts is not None else 0
+        plan = self.pipeline.plan_burst(here)
+        return _Feedback(None if pred is None else pred[1], plan, centroid)
+
+    def _score(self, out: PipelineOutput, frame: Frame, tag: FrameTag, truth_z: float) -> None:
+        res = self.result
+        size = self.scenario.target.size_m
+        m = out.measurement
+        if m is not None:
+            truths = [self.truth[i] for i in m.frame_indices if i in self.truth]
+            tz = float(np.mean(truths)) if truths else math.nan
+            coeffs = _parabola(m.v_mm, m.costs)
+            res.bursts.append(
+                BurstRecord(
+                    t=m.t,
+                    v0_mm=m.v_mm,
+                    cost=m.costs,
+                    accepted=m.accepted,
+                    reason=m.reason,
+                    v_hat_mm=m.v_hat_mm if math.isfinite(m.v_hat_mm) else None,
+                    coeffs=coeffs,
+                    z_m=m.z_m,
+                    truth_z_m=tz,
+                    truth_v_mm=self.lens.v_from_depth(tz) if math.isfinite(tz) else None,
+                )
+            )
+            res.extra.setdefault("burst_counts", []).append(list(m.focus_counts))
+            if m.accepted and m.z_m is not None:
+                # Raw z_m scored against the truth at the burst's own exposures.
+                res.series("measured").add(m.t, m.z_m, tz)
+        est = out.estimate
+        if est is None:
+            return
+        for name, z in est.depth_m.items():
+            if name == "measured" or z is None:
+                continue
+            res.series(name).add(frame.t, z, truth_z)
+        if est.beta_m_s is not None:
+            res.beta.add(frame.t, est.beta_m_s)
+        if est.size_m is not None:
+            res.size.add(frame.t, est.size_m, size)
+        if self.scenario.baselines.known_size and est.r_px > 0:
+            z_ks = known_size_depth(
+                est.r_px, size, self.lens.focal_length_mm, self.lens.pixel_pitch_mm
+            )
+            res.baseline("known_size").add(frame.t, z_ks, truth_z)
+        if self._aruco is not None:
+            z_ar = self._aruco.depth(frame.image)
+            if z_ar is not None:
+                res.baseline("aruco").add(frame.t, z_ar, truth_z)
+
+    def _remember_truth(self, index: int, z: float) -> None:
+        self.truth[index] = z
+        self._truth_order.append(index)
+        while len(self._truth_order) > TRUTH_HISTORY_FRAMES:
+            self.truth.pop(self._truth_order.popleft(), None)
+
+    # -- sweep policy --------------------------------------------------------------------------
+    def _sweep_frame(self, frame: Frame, tag: FrameTag, truth_z: float) -> None:
+        blob = find_blob(frame.image)
+        centroid = None if blob is None else (blob[0], blob[1])
+        self.scheduler.on_estimate(
+            frame.t,
+            sigma_m=None,
+            plan=None,
+            centroid_px=centroid,
+            pan_deg=tag.pan_deg,
+            tilt_deg=tag.tilt_deg,
+        )
+        done = self._sweep.on_frame(frame, tag, blob, truth_z)
+        if done is not None:
+            t_peak, z, tz = done
+            if z is not None:
+                self.result.baseline("full_sweep").add(t_peak, z, tz)
+
+    def _finish(self) -> None:
+        res = self.result
+        if self.policy == "sweep":
+            res.full_sweep_depth_hz = self._sweep.completed / res.duration_s
+            res.extra["sweep_settings"] = self._sweep.n
+            return
+        counts = res.extra.get("burst_counts", [])
+        halves = [0.5 * (max(c) - min(c)) for c in counts if len(c) >= 3]
+        if halves:
+            spacing = int(np.median(halves))
+            limit = depth_rate_limit(self.sched_config, spacing)
+            res.depth_limit_hz = limit.depth_hz
+            res.extra["median_burst_half_span_counts"] = spacing
+        res.extra["scheduler"] = {
+            "bursts_started": self.scheduler.stats.bursts_started,
+            "bursts_completed": self.scheduler.stats.bursts_completed,
+            "bursts_incomplete": self.scheduler.stats.bursts_incomplete,
+            "focus_moves": self.scheduler.stats.focus_moves,
+            "pan_tilt_commands": self.scheduler.stats.pan_tilt_commands,
+        }
+        res.extra["link"] = {"commands": self.link.commands_sent, "errors": self.link.errors}
+        if self._aruco is not None:
+            res.extra["aruco"] = {
+                "detections": self._aruco.detections,
+                "misses": self._aruco.misses,
+            }
+
+
+class _SweepState:
+    """Classic depth from focus: a boustrophedon sweep over the focus range, one frame a step."""
+
+    def __init__(self, lens: Lens, n: int) -> None:
+        lo, hi = lens.counts_range
+        self.lens = lens
+        self.n = n
+        self.settings = [round(c) for c in np.linspace(lo, hi, n)]
+        self.forward = True
+        self.step = 0
+        self.move_id = 10_000_000  # distinct from the scheduler's ids
+        self.moving: int | None = None
+        self.settled_at: float | None = None
+        self.claim_after: float | None = None
+        self.wakeup: float | None = 0.0
+        self.samples: list[tuple[int, float, float, float]] = []  # counts, sharpness, t, truth
+        self.half_px = SWEEP_INITIAL_HALF_PX
+        self.completed = 0
+        self.margin_s = 0.003
+        self.exposure_s = 0.0
+        self.current: int | None = None
+
+    def order(self) -> list[int]:
+        return self.settings if self.forward else self.settings[::-1]
+
+    def next_move(self, now: float) -> FocusMove | None:
+        if self.moving is not None or self.claim_after is not None:
+            return None
+        if self.wakeup is None or now < self.wakeup:
+            return None
+        target = self.order()[self.step]
+        self.move_id += 1
+        self.moving = self.move_id
+        self.wakeup = None
+        return FocusMove(self.move_id, target)
+
+    def on_done(self, move_id: int, t: float) -> None:
+        if move_id != self.moving:
+            return
+        self.moving = None
+        self.current = self.order()[self.step]
+        self.claim_after = t + self.margin_s
+
+    def on_failed(self, move_id: int, t: float) -> None:
+        if move_id == self.moving:
+            self.moving = None
+            self.wakeup = t
+
+    def tag(self, t_mid: float, sched_tag: FrameTag) -> FrameTag:
+        half = self.exposure_s / 2.0
+        clean = (
+            self.claim_after is not None
+            and self.current is not None
+            and t_mid - half >= self.claim_after
+        )
+        if clean:
+            return FrameTag("burst", self.current, sched_tag.pan_deg, sched_tag.tilt_deg, None)
+        return FrameTag("transit", None, sched_tag.pan_deg, sched_tag.tilt_deg, None)
+
+    def on_frame(
+        self,
+        frame: Frame,
+        tag: FrameTag,
+        blob: tuple[float, float, float] | None,
+        truth_z: float,
+    ) -> tuple[float, float | None, float] | None:
+        if tag.role != "burst" or tag.focus_counts is None:
+            return None
+        centre = (frame.image.shape[1] / 2.0, frame.image.shape[0] / 2.0)
+        if blob is not None:
+            centre = (blob[0], blob[1])
+        sharp = tenengrad(frame.image, centre, self.half_px)
+        self.samples.append((tag.focus_counts, sharp, frame.t, truth_z))
+        # Next setting as soon as this exposure is over.
+        self.claim_after = None
+        self.wakeup = frame.t + self.exposure_s / 2.0 + self.margin_s
+        self.step += 1
+        if self.step < self.n:
+            return None
+        samples, self.samples = self.samples, []
+        self.step = 0
+        self.forward = not self.forward
+        self.completed += 1
+        counts = [s[0] for s in samples]
+        sharpness = [s[1] for s in samples]
+        z = sweep_depth(counts, sharpness, self.lens)
+        peak = samples[int(np.argmax(sharpness))]
+        if blob is not None:
+            self.half_px = int(SWEEP_WINDOW_RADII * blob[2] + SWEEP_WINDOW_MARGIN_PX)
+        return peak[2], z, peak[3]
+
+
+def _parabola(v: tuple[float, ...], g: tuple[float, ...]) -> tuple[float, float, float] | None:
+    """Least-squares ``g = a v² + b v + c`` through a burst's samples, for the plots only."""
+    if len(v) < 3 or len(set(v)) < 3:
+        return None
+    x = np.asarray(v, dtype=np.float64)
+    mid = float(x.mean())
+    a2, a1, a0 = np.polyfit(x - mid, np.asarray(g, dtype=np.float64), 2)
+    # expand back to raw v: a (v−m)² + b (v−m) + c
+    return float(a2), float(a1 - 2 * a2 * mid), float(a0 - a1 * mid + a2 * mid * mid)

@@ -1,0 +1,181 @@
+"""Build the simulated camera of a scenario session on a virtual clock (lock-step mode).
+
+Everything physical comes from ``drivers/sim`` (config, world, optics, frame source, VISCA
+device); the scenario only selects parameters. The estimator's lens table is the file the
+scenario names; when it is missing (the simulator's calibration not yet written) the bench writes
+the simulator's ground-truth table to a temporary file and says so in the run's notes.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.frames import Frame
+from drivers.sim.config import (
+    SimCameraConfig,
+    load_sim_camera_config,
+    with_overrides,
+)
+from drivers.sim.device import DeviceConfig
+from drivers.sim.optics import Optics
+from drivers.sim.source import FrameTruth, SimFrameSource, camera_state_for
+from drivers.sim.state import CameraState
+from drivers.sim.world import World
+from hil.scenario import Scenario, TrajectorySpec
+
+logger = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+# Virtual time of the first exposure's middle: the device is up and the first focus move lands.
+T_FIRST_FRAME_S = 0.5
+
+
+class VirtualClock:
+    """A settable clock for the camera state (virtual time never runs by itself)."""
+
+    def __init__(self, t: float = 0.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@dataclass
+class SimSession:
+    """One simulated camera + world, in virtual time."""
+
+    config: SimCameraConfig
+    clock: VirtualClock
+    state: CameraState
+    source: SimFrameSource
+    world: World
+    device_config: DeviceConfig
+    lens_path: Path
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def fps(self) -> float:
+        """Frame rate."""
+        return self.config.capture.fps
+
+    @property
+    def exposure_s(self) -> float:
+        """Exposure duration."""
+        return self.config.capture.exposure_s
+
+    @property
+    def latency_frames(self) -> float:
+        """Frame periods between the end of an exposure and delivery."""
+        return self.config.capture.capture_latency_frames
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height)."""
+        return self.source.frame_size
+
+    def set_time(self, t: float) -> None:
+        """Advance the virtual clock."""
+        self.clock.t = t
+
+    def frame_time(self, index: int) -> float:
+        """Mid-exposure time of frame ``index``."""
+        return self.source.frame_time(index)
+
+    def delivery_time(self, index: int) -> float:
+        """When frame ``index`` is delivered."""
+        return self.source.delivery_time(index)
+
+    def render(self, index: int) -> tuple[Frame, FrameTruth]:
+        """Render frame ``index`` and its ground truth."""
+        frame = self.source.render_frame(index)
+        truth = self.source.truth_for(index)
+        assert truth is not None
+        return frame, truth
+
+
+def sim_camera_config(
+    scenario: Scenario, trajectory: TrajectorySpec, seed: int, target_shape: str | None = None
+) -> tuple[SimCameraConfig, list[str]]:
+    """The simulated-camera config of a session: camera file + scenario parameters + world."""
+    notes: list[str] = []
+    path = _resolve(scenario.camera.config)
+    if path.exists():
+        base = load_sim_camera_config(path)
+    else:
+        base = SimCameraConfig()
+        notes.append(f"{scenario.camera.config} missing: simulator defaults used")
+    cam = scenario.camera
+    overrides: dict[str, Any] = {"seed": seed}
+    if cam.fps is not None:
+        overrides["capture.fps"] = cam.fps
+    if cam.read_noise_dn is not None:
+        overrides["sensor.read_noise_dn"] = cam.read_noise_dn
+    if cam.capture_latency_frames is not None:
+        overrides["capture.capture_latency_frames"] = cam.capture_latency_frames
+    if cam.focus_jitter_counts is not None:
+        overrides["lens.focus_jitter_counts"] = cam.focus_jitter_counts
+    if cam.motion_blur is not None:
+        overrides["capture.motion_blur"] = cam.motion_blur
+    overrides.update(cam.overrides)
+    target = scenario.target.model_dump()
+    if target_shape is not None:
+        target["shape"] = target_shape
+    traj = trajectory.model_dump() | {"seed": seed}
+    overrides["world.target"] = target
+    overrides["world.trajectory"] = traj
+    return with_overrides(base, overrides), notes
+
+
+def build_session(
+    scenario: Scenario,
+    trajectory: TrajectorySpec,
+    seed: int,
+    *,
+    target_shape: str | None = None,
+) -> SimSession:
+    """A ready simulated camera for one session, its clock at 0."""
+    config, notes = sim_camera_config(scenario, trajectory, seed, target_shape)
+    clock = VirtualClock(0.0)
+    state = camera_state_for(config, clock=clock)
+    world = World.from_config(config.world)
+    source = SimFrameSource.from_config(config, state, world, t0=T_FIRST_FRAME_S)
+    device_config = DeviceConfig(
+        pace=True, autofocus_at_power_up=False, network_change_at_power_up=False
+    )
+    lens_path = _resolve(scenario.camera.lens)
+    if not lens_path.exists():
+        lens_path = _temporary_lens_table(config)
+        notes.append(f"{scenario.camera.lens} missing: the simulator's ground-truth table was used")
+    return SimSession(config, clock, state, source, world, device_config, lens_path, notes)
+
+
+def _resolve(path: str) -> Path:
+    p = Path(path)
+    return p if p.is_absolute() else REPO_ROOT / p
+
+
+_LENS_CACHE: dict[int, Path] = {}
+
+
+def _temporary_lens_table(config: SimCameraConfig) -> Path:
+    key = hash(config.lens.model_dump_json()) ^ config.zoom_counts
+    if key not in _LENS_CACHE:
+        handle = tempfile.NamedTemporaryFile(  # noqa: SIM115 - kept for the process lifetime
+            "w", suffix=".toml", prefix="hil-lens-", delete=False
+        )
+        handle.close()
+        Optics.from_config(config).write_lens_table(handle.name, config.zoom_counts)
+        _LENS_CACHE[key] = Path(handle.name)
+    return _LENS_CACHE[key]
+
+
+def image_of(frame: Frame) -> npt.NDArray[np.uint8]:
+    """The frame's pixels."""
+    return frame.image
