@@ -1,0 +1,1036 @@
+"""Frame scheduler: interleaves three-focus bursts with tracking frames and centres the target.
+
+Pure and synchronous (DESIGN §1, §4): no I/O, no clock of its own, no asyncio. The daemon shell
+feeds it events stamped with monotonic times and executes the actions it returns; the same
+object runs live, in virtual time, and in the unit tests.
+
+Event-driven API (every ``t``/``now`` is in the frame source's monotonic seconds):
+
+- ``on_frame(index, t) -> FrameTag``: a frame exposed around mid-time ``t`` was delivered; the
+  tag says what the focus and pan/tilt were during the *whole* exposure ``[t − E/2, t + E/2]``.
+- ``on_focus_completed(move_id, t)`` / ``on_focus_failed(move_id, t)``: VISCA Completion (or an
+  error/timeout) for a :class:`FocusMove`.
+- ``on_focus_position(t, counts)``: reply to a :class:`FocusInquiry`.
+- ``on_pan_tilt_done(t)`` / ``on_pan_tilt_failed(t)`` / ``on_pan_tilt_position(t, pan, tilt)``.
+- ``on_estimate(...)``: what the estimator thread learned from a frame (σ of ẑ, the next burst
+  plan, the target's centroid) — drives the burst policy and the pan/tilt controller.
+- ``next_actions(now) -> list[Action]`` then ``next_wakeup() -> float | None``: the shell calls
+  ``next_actions`` after every event and at the wake-up time, and executes what it returns
+  (focus actions on one VISCA socket, pan/tilt on the other — concurrently).
+
+How a frame's focus is known. The focus is *stationary* from the moment a Completion is received
+(the motor stopped before the camera said so) until the next move is issued (the lens cannot
+move before its command is written). The scheduler keeps those stationary intervals; a frame is
+``track``/``burst`` only if its whole exposure lies inside one of them with ``timing_margin_s``
+to spare, otherwise ``transit``. Where that is not certain (a move timed out or failed, or the
+start-up position is unknown) it issues :class:`FocusInquiry` until two readings agree (or one
+equals the commanded target) and tags ``transit`` meanwhile.
+
+How bursts are timed. Exposures are periodic; from the last delivered frame's timestamp and the
+period the scheduler predicts the exposure windows of frames still in flight (capture latency)
+and of future frames. For each burst slot it *claims* the first exposure that starts after the
+focus settled, and issues the next move as soon as that exposure has *ended* — it does not wait
+for the frame to be delivered, so the capture latency costs nothing in steady state. The claimed
+frame is tagged ``burst`` with ``(burst id, slot)`` when it arrives; a claimed frame that never
+arrives (dropped by the capture) leaves the burst incomplete (counted in :class:`SchedulerStats`).
+
+Burst policy: one burst after ``burst_every_frames`` tracking exposures at the tracking focus, or
+earlier when the reported σ of ẑ exceeds ``sigma_trigger_m``. Slot order minimises motor travel
+(including the return to the tracking focus); a planned setting within ``snap_counts`` of the
+current focus is taken where the lens already is (the core fits over the real counts in the tag).
+
+Pan/tilt: a proportional controller on the centroid's angular error (pixels → angle through the
+focal length and pixel pitch), corrected for the camera's own motion since the exposure, issuing
+Pan-tiltDrive speeds (or absolute moves) at most every ``pan_tilt_min_interval_s``, never within
+one camera command slot of a focus command (the link is budgeted for focus first).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+from dffd.core.types import FrameTag
+
+# -- VISCA link facts (DESIGN §5) -------------------------------------------------------------
+BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
+FOCUS_DIRECT_BYTES = 9  # 8x 01 04 48 0p 0q 0r 0s FF
+ACK_BYTES = 3  # z0 4y FF
+COMPLETION_BYTES = 3  # z0 5y FF
+PAN_TILT_DRIVE_BYTES = 9  # 8x 01 06 01 VV WW XX YY FF
+PAN_TILT_ABSOLUTE_BYTES = 15  # 8x 01 06 02 VV WW 0Y×4 0Z×4 FF
+# Pan/tilt speed table for VISCA speed indices 01…18 (deg/s), EVI-D100 reference model.
+VISCA_SPEEDS_DEG_S: tuple[float, ...] = (
+    2.0, 2.4, 3.0, 3.7, 4.7, 6.1, 7.4, 9.1, 11.0, 14.0, 18.0, 22.0,
+    27.0, 34.0, 42.0, 52.0, 65.0, 81.0, 100.0, 125.0, 155.0, 190.0, 240.0, 300.0,
+)  # fmt: skip
+PAN_MAX_SPEED_INDEX = 0x18
+TILT_MAX_SPEED_INDEX = 0x14
+
+# Gains of the exposure-clock tracker (per delivered frame): the phase follows a timestamp
+# step within ~5 frames, the period within ~100; jitter is averaged over as many frames.
+PHASE_GAIN = 0.2
+PERIOD_GAIN = 0.01
+# Float rounding allowance when comparing times (s); far below any physical timing.
+TIME_EPS_S = 1e-7
+# Stationary-focus intervals kept for tagging late frames: at one move per frame this still covers
+# several seconds, far more than any capture latency.
+FOCUS_HISTORY = 64
+# Burst completion times kept for the achieved-rate estimate.
+RATE_WINDOW = 64
+
+PanTiltMode = Literal["drive", "absolute", "off"]
+
+
+@dataclass(frozen=True, slots=True)
+class SchedulerConfig:
+    """Timing, policy and geometry the scheduler needs; built by the daemon from ``[scheduler]``."""
+
+    fps: float = 30.0
+    # Exposure duration (s); None = the full frame period (the conservative assumption).
+    exposure_s: float | None = None
+    # Frames between exposure and delivery (measured by `dffd calibrate`); only the rate limit of
+    # the non-predictive mode and the pan/tilt delay depend on it.
+    capture_latency_frames: int = 2
+    # Bound on the error of frame timestamps (s): a frame counts as exposed off a focus move only
+    # with this much to spare either side; covers capture timestamp jitter and reply transit.
+    timing_margin_s: float = 0.003
+    # Burst policy.
+    burst_every_frames: int = 10
+    sigma_trigger_m: float | None = None
+    snap_counts: int = 40
+    # Focus motor and link timing.
+    focus_speed_counts_per_s: float = 20000.0
+    focus_tolerance_counts: int = 2
+    baudrate: int = 9600
+    # The camera accepts one command per video field (DESIGN §5: ~1V, 16.7 ms at 60 Hz).
+    command_slot_s: float = 1.0 / 60.0
+    initial_focus_counts: int | None = None
+    focus_inquiry_interval_s: float = 0.05
+    # Pan/tilt.
+    pan_tilt_mode: PanTiltMode = "drive"
+    focal_length_mm: float = 4.0
+    pixel_pitch_mm: float = 0.006
+    frame_size: tuple[int, int] = (640, 480)
+    pan_tilt_gain_per_s: float = 1.5  # commanded deg/s per degree of error
+    pan_tilt_deadband_deg: float = 0.3
+    pan_tilt_min_interval_s: float = 0.1
+    pan_tilt_poll_interval_s: float = 0.25
+    absolute_speed_index: int = 0x10
+    pan_sign: int = 1  # +1: image x to the right is positive pan
+    tilt_sign: int = 1  # +1: image y upwards is positive tilt
+
+    def __post_init__(self) -> None:
+        if self.fps <= 0:
+            raise ValueError(f"fps must be > 0 (got {self.fps})")
+        if self.exposure_s is not None and not 0 < self.exposure_s <= 1.0 / self.fps:
+            raise ValueError(f"exposure_s must be in (0, 1/fps] (got {self.exposure_s})")
+        if self.burst_every_frames < 0:
+            raise ValueError(f"burst_every_frames must be >= 0 (got {self.burst_every_frames})")
+        if self.focus_speed_counts_per_s <= 0:
+            raise ValueError("focus_speed_counts_per_s must be > 0")
+        if self.baudrate <= 0:
+            raise ValueError(f"baudrate must be > 0 (got {self.baudrate})")
+        if self.pan_sign not in (1, -1) or self.tilt_sign not in (1, -1):
+            raise ValueError("pan_sign and tilt_sign must be +1 or -1")
+
+    @property
+    def period_s(self) -> float:
+        """Nominal frame period."""
+        return 1.0 / self.fps
+
+    @property
+    def guard_s(self) -> float:
+        """Scheduling guard around a claimed exposure: the tag check's margin plus the
+        prediction's own error bound (both ``timing_margin_s``), so a claimed frame passes the
+        check even when its timestamp arrives off by the margin."""
+        return 2.0 * self.timing_margin_s
+
+    @property
+    def exposure(self) -> float:
+        """Exposure duration used for tagging (s)."""
+        return self.exposure_s if self.exposure_s is not None else self.period_s
+
+
+# -- actions ----------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class FocusMove:
+    """Focus Direct to ``counts``; report Completion with ``on_focus_completed(move_id, t)``."""
+
+    move_id: int
+    counts: int
+
+
+@dataclass(frozen=True, slots=True)
+class FocusInquiry:
+    """FocusPosInq; report the reply with ``on_focus_position(t, counts)``."""
+
+
+@dataclass(frozen=True, slots=True)
+class PanTiltDrive:
+    """Pan-tiltDrive: signed VISCA speed indices (0 = stop that axis) and their rates in deg/s."""
+
+    pan_speed: int
+    tilt_speed: int
+    pan_rate_deg_s: float
+    tilt_rate_deg_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class PanTiltAbsolute:
+    """Absolute pan/tilt move (degrees) at VISCA speed indices."""
+
+    pan_deg: float
+    tilt_deg: float
+    pan_speed: int
+    tilt_speed: int
+
+
+@dataclass(frozen=True, slots=True)
+class PanTiltStop:
+    """Stop both pan/tilt axes."""
+
+
+@dataclass(frozen=True, slots=True)
+class PanTiltInquiry:
+    """Pan-tiltPosInq; report with ``on_pan_tilt_position(t, pan_deg, tilt_deg)``."""
+
+
+Action = FocusMove | FocusInquiry | PanTiltDrive | PanTiltAbsolute | PanTiltStop | PanTiltInquiry
+PAN_TILT_ACTIONS = (PanTiltDrive, PanTiltAbsolute, PanTiltStop, PanTiltInquiry)
+
+
+@dataclass(slots=True)
+class SchedulerStats:
+    """Counters for status and tests."""
+
+    frames: dict[str, int] = field(default_factory=lambda: {"track": 0, "burst": 0, "transit": 0})
+    bursts_started: int = 0
+    bursts_completed: int = 0
+    bursts_incomplete: int = 0
+    focus_moves: int = 0
+    focus_failures: int = 0
+    focus_inquiries: int = 0
+    pan_tilt_commands: int = 0
+    pan_tilt_failures: int = 0
+
+
+# -- theoretical rate -------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class RateLimit:
+    """The depth-measurement rate an ideal scheduler reaches with this configuration."""
+
+    depth_hz: float
+    cycle_frames: int  # frame periods per measurement cycle (bursts + tracking)
+    move_frames: tuple[int, ...]  # frame periods each focus move of a burst costs
+    move_s: tuple[float, ...]  # command → Completion time of each move
+    predictive: bool
+
+
+def link_time_s(n_bytes: int, baudrate: int) -> float:
+    """Time to clock ``n_bytes`` through an 8N1 serial line."""
+    return n_bytes * BITS_PER_BYTE / baudrate
+
+
+def focus_move_time_s(config: SchedulerConfig, delta_counts: int) -> float:
+    """Command written → Completion received, for a focus move of ``delta_counts``."""
+    if delta_counts == 0:
+        return 0.0
+    return (
+        link_time_s(FOCUS_DIRECT_BYTES, config.baudrate)
+        + config.command_slot_s
+        + abs(delta_counts) / config.focus_speed_counts_per_s
+        + link_time_s(COMPLETION_BYTES, config.baudrate)
+    )
+
+
+def depth_rate_limit(
+    config: SchedulerConfig, spacing_counts: int, *, predictive: bool = True
+) -> RateLimit:
+    """Theoretical depth measurements per second for bursts ``c−s, c, c+s`` (DESIGN §8).
+
+    One cycle: the burst's slot at the tracking focus, a move of ``s`` to one side, ``2s`` to
+    the other, ``s`` back, then ``burst_every_frames`` tracking frames. A move issued when a
+    claimed exposure ends (+margin) and completed ``t_move`` later makes the next usable exposure
+    ``ceil((E + 2·guard + t_move)/T)`` periods after the claimed one. Without prediction the
+    move waits for the claimed frame to be delivered: the capture latency adds to every move.
+    """
+    spacing = abs(int(spacing_counts))
+    period = config.period_s
+    wait = config.exposure + 2.0 * config.guard_s
+    if not predictive:
+        wait += config.capture_latency_frames * period
+    moves = (spacing, 2 * spacing, spacing) if spacing else ()
+    move_s = tuple(focus_move_time_s(config, d) for d in moves)
+    move_frames = tuple(max(1, math.ceil((wait + t) / period - 1e-9)) for t in move_s)
+    # A zero spacing means three frames at one setting (degenerate but well defined).
+    cycle = sum(move_frames) + config.burst_every_frames + (0 if moves else 3)
+    return RateLimit(
+        depth_hz=config.fps / cycle,
+        cycle_frames=cycle,
+        move_frames=move_frames,
+        move_s=move_s,
+        predictive=predictive,
+    )
+
+
+# -- geometry and speed helpers ---------------------------------------------------------------
+def pixel_offset_to_deg(offset_px: float, focal_length_mm: float, pixel_pitch_mm: float) -> float:
+    """Angle (deg) off the optical axis of an image point ``offset_px`` from the centre."""
+    return math.degrees(math.atan2(offset_px * pixel_pitch_mm, focal_length_mm))
+
+
+def visca_speed_index(rate_deg_s: float, max_index: int) -> int:
+    """Signed VISCA speed index whose table speed is nearest (log scale) to ``rate_deg_s``.
+
+    Returns 0 only for a zero rate: any non-zero rate maps to at least index 1 (speed 00 is a
+    syntax error on some models, DESIGN §5).
+    """
+    if rate_deg_s == 0.0 or not math.isfinite(rate_deg_s):
+        return 0
+    magnitude = abs(rate_deg_s)
+    table = VISCA_SPEEDS_DEG_S[:max_index]
+    best = min(range(len(table)), key=lambda i: abs(math.log(table[i] / magnitude)))
+    return int(math.copysign(best + 1, rate_deg_s))
+
+
+def speed_of_index(index: int) -> float:
+    """Signed deg/s of a signed VISCA speed index (0 → 0)."""
+    if index == 0:
+        return 0.0
+    return math.copysign(VISCA_SPEEDS_DEG_S[abs(index) - 1], index)
+
+
+def order_settings(
+    current: int | None,
+    settings: tuple[int, ...],
+    home: int,
+    config: SchedulerConfig,
+) -> tuple[int, ...]:
+    """Order burst settings to minimise the time of all moves, including the return ``home``."""
+
+    def cost(order: tuple[int, ...]) -> tuple[float, int]:
+        total = 0.0
+        here = current
+        for target in (*order, home):
+            if here is None or here != target:
+                delta = abs(target - here) if here is not None else abs(target - home)
+                total += focus_move_time_s(config, max(1, delta))
+            here = target
+        # Tie-break: prefer starting where the lens already is (the first claim costs no move).
+        return total, 0 if order and order[0] == current else 1
+
+    return min(itertools.permutations(settings), key=cost)
+
+
+# -- the scheduler ----------------------------------------------------------------------------
+@dataclass(slots=True)
+class _Dwell:
+    """The focus was stationary at ``counts`` over ``[t0, t1)``."""
+
+    t0: float
+    t1: float
+    counts: int
+
+
+@dataclass(slots=True)
+class _Move:
+    move_id: int
+    target: int
+    t_issued: float
+
+
+@dataclass(slots=True)
+class _Burst:
+    burst_id: int
+    order: tuple[int, ...]
+    slot: int = 0  # the slot being acquired
+    claims: list[float] = field(default_factory=list)  # predicted exposure mid-time per slot
+    tagged: list[bool] = field(default_factory=list)
+    start_at: float = -math.inf  # first move not before (the last tracking exposure's end)
+
+
+Phase = Literal[
+    "init", "track", "burst_wait", "burst_move", "burst_dwell", "return_move", "recover"
+]
+
+# Frames beyond the capture latency without a delivery before the capture counts as stalled.
+STALL_FRAMES = 3
+# Bursts whose claimed frames are still in flight (capture latency): a few at most.
+PENDING_BURSTS = 8
+
+
+class Scheduler:
+    """Decides focus and pan/tilt commands and tags frames; see the module docstring."""
+
+    def __init__(self, config: SchedulerConfig) -> None:
+        self.config = config
+        self.stats = SchedulerStats()
+        self._phase: Phase = "init"
+        self._dwells: deque[_Dwell] = deque(maxlen=FOCUS_HISTORY)
+        self._move: _Move | None = None
+        self._next_move_id = 1
+        self._burst: _Burst | None = None  # the burst whose moves are being executed
+        self._pending: deque[_Burst] = deque(maxlen=PENDING_BURSTS)  # claims awaiting frames
+        self._next_burst_id = 1
+        self._burst_times: deque[float] = deque(maxlen=RATE_WINDOW)
+        # Focus knowledge.
+        self._counts: int | None = None  # stationary counts, if known
+        self._track_counts: int | None = config.initial_focus_counts
+        self._track_from = -math.inf  # tracking exposures count from this time
+        self._inquiry_due = 0.0
+        self._inquiry_pending = False
+        self._last_reading: int | None = None
+        # Frame timing.
+        self._t_ref: float | None = None  # the last delivered exposure mid-time
+        self._period = config.period_s
+        self._last_index: int | None = None
+        self._last_tagged_mid = -math.inf
+        # Estimator feedback.
+        self._plan: tuple[int, ...] | None = None
+        self._sigma: float | None = None
+        self._burst_now = False
+        # Pan/tilt.
+        self._pt = _PanTilt(config)
+
+    # -- queries ----------------------------------------------------------------------------
+    @property
+    def phase(self) -> Phase:
+        """Current phase of the focus state machine."""
+        return self._phase
+
+    @property
+    def focus_counts(self) -> int | None:
+        """Focus counts if the lens is known to be stationary now, else None."""
+        return self._counts
+
+    @property
+    def track_counts(self) -> int | None:
+        """The tracking (best) focus the scheduler returns to between bursts."""
+        return self._track_counts
+
+    @property
+    def frame_period_s(self) -> float:
+        """Frame period estimated from delivered timestamps."""
+        return self._period
+
+    def pan_tilt_at(self, t: float) -> tuple[float, float]:
+        """Model pan/tilt (deg) at time ``t``."""
+        return self._pt.at(t)
+
+    def achieved_rate_hz(self, now: float, window_s: float = 10.0) -> float:
+        """Completed bursts per second over the last ``window_s`` seconds."""
+        recent = [t for t in self._burst_times if now - t <= window_s]
+        if len(recent) < 2:
+            return 0.0
+        span = recent[-1] - recent[0]
+        return (len(recent) - 1) / span if span > 0 else 0.0
+
+    # -- frame events -----------------------------------------------------------------------
+    def on_frame(self, index: int, t: float) -> FrameTag:
+        """Tag the frame exposed around mid-time ``t`` (delivered now).
+
+        ``track``: whole exposure at a known, stationary focus that is not a claimed burst slot
+        (normally the tracking focus); ``burst``: a claimed slot; ``transit``: the focus moved (or
+        may have moved, or was unknown) during the exposure.
+        """
+        self._update_timing(index, t)
+        pan, tilt = self._pt.at(t)
+        half = self.config.exposure / 2.0
+        counts = self._counts_during(t - half, t + half)
+        tag: FrameTag
+        if counts is None:
+            tag = FrameTag("transit", None, pan, tilt)
+        else:
+            slot = self._claim_for(t, counts)
+            if slot is not None:
+                tag = FrameTag("burst", counts, pan, tilt, slot)
+            else:
+                tag = FrameTag("track", counts, pan, tilt)
+        self._drop_missed_claims(t)
+        self._last_tagged_mid = max(self._last_tagged_mid, t)
+        self.stats.frames[tag.role] += 1
+        return tag
+
+    # -- focus events -----------------------------------------------------------------------
+    def on_focus_completed(self, move_id: int, t: float) -> None:
+        """Completion of :class:`FocusMove` ``move_id`` received at ``t``."""
+        if self._move is None or self._move.move_id != move_id:
+            return  # late or duplicate Completion: the move was already resolved
+        self._settle(self._move.target, t)
+
+    def on_focus_failed(self, move_id: int, t: float) -> None:
+        """The move failed or timed out: the focus position is uncertain until inquired."""
+        if self._move is None or self._move.move_id != move_id:
+            return
+        self.stats.focus_failures += 1
+        self._enter_recover(t)
+
+    def on_focus_position(self, t: float, counts: int) -> None:
+        """Reply to a :class:`FocusInquiry` received at ``t``.
+
+        Settles the focus when the reading equals the outstanding move's target, or (with no
+        move outstanding) when two consecutive readings agree.
+        """
+        self._inquiry_pending = False
+        tol = self.config.focus_tolerance_counts
+        if self._move is not None:
+            if abs(counts - self._move.target) <= tol:
+                self._settle(counts, t)
+            return
+        if self._phase != "recover":
+            return
+        if self._last_reading is not None and abs(counts - self._last_reading) <= tol:
+            self._settle(counts, t)
+        else:
+            self._last_reading = counts
+            self._inquiry_due = t + self.config.focus_inquiry_interval_s
+
+    def on_focus_inquiry_failed(self, t: float) -> None:
+        """A :class:`FocusInquiry` got no valid reply; it is retried later."""
+        self._inquiry_pending = False
+        self._inquiry_due = t + self.config.focus_inquiry_interval_s
+
+    def invalidate_focus(self, t: float) -> None:
+        """Forget what the focus is (e.g. the link was reset); re-learn it by inquiry."""
+        self._enter_recover(t)
+
+    # -- pan/tilt events --------------------------------------------------------------------
+    def on_pan_tilt_done(self, t: float) -> None:
+        """The last pan/tilt action finished (Completion received or inquiry answered)."""
+        self._pt.busy = False
+
+    def on_pan_tilt_failed(self, t: float) -> None:
+        """The last pan/tilt action failed; the model is re-anchored by the next inquiry."""
+        self._pt.busy = False
+        self._pt.poll_due = t
+        self.stats.pan_tilt_failures += 1
+
+    def on_pan_tilt_position(self, t: float, pan_deg: float, tilt_deg: float) -> None:
+        """Pan/tilt position reply received at ``t`` (also ends the inquiry)."""
+        self._pt.anchor(t, pan_deg, tilt_deg)
+
+    # -- estimator feedback -----------------------------------------------------------------
+    def on_estimate(
+        self,
+        t: float,
+        *,
+        sigma_m: float | None,
+        plan: tuple[int, int, int] | None,
+        centroid_px: tuple[float, float] | None,
+        pan_deg: float | None = None,
+        tilt_deg: float | None = None,
+    ) -> None:
+        """Feedback from the core for the frame exposed at ``t``.
+
+        ``plan``: the next burst's settings (``Pipeline.plan_burst``), None while the core has no
+        depth to bracket (no bursts then). ``centroid_px``: the target's image centroid, None when
+        lost (pan/tilt stops). ``pan_deg``/``tilt_deg``: the tag's pan/tilt for that exposure.
+        """
+        self._sigma = sigma_m
+        if plan is not None:
+            self._plan = tuple(sorted(int(c) for c in plan))
+            self._track_counts = self._plan[len(self._plan) // 2]
+        else:
+            self._plan = None
+        limit = self.config.sigma_trigger_m
+        if limit is not None and sigma_m is not None and sigma_m > limit:
+            self._burst_now = True
+        if pan_deg is None or tilt_deg is None:
+            pan_deg, tilt_deg = self._pt.at(t)
+        self._pt.on_centroid(t, centroid_px, pan_deg, tilt_deg)
+
+    def set_track_focus(self, counts: int) -> None:
+        """Tracking focus to use until the core plans bursts (e.g. from an initial depth)."""
+        self._track_counts = int(counts)
+
+    def request_burst(self) -> None:
+        """Start a burst at the next opportunity (if a plan exists)."""
+        self._burst_now = True
+
+    def cancel_bursts(self) -> None:
+        """Forget the plan (target released): no new bursts until a new plan arrives."""
+        self._plan = None
+        self._burst_now = False
+
+    def stop_pan_tilt(self) -> None:
+        """Stop following the target: one stop is issued, then nothing until a new centroid."""
+        self._pt.on_centroid(0.0, None, 0.0, 0.0)
+
+    # -- decisions --------------------------------------------------------------------------
+    def next_actions(self, now: float) -> list[Action]:
+        """Actions due at ``now``; the shell executes them in order (focus first)."""
+        actions: list[Action] = []
+        focus_action = self._focus_step(now)
+        if focus_action is not None:
+            actions.append(focus_action)
+            if isinstance(focus_action, FocusMove):
+                self._pt.focus_command_at(now)
+        pt = self._pt.step(now, self._next_focus_command_time(now))
+        if pt is not None:
+            actions.append(pt)
+            if not isinstance(pt, PanTiltInquiry):
+                self.stats.pan_tilt_commands += 1
+        return actions
+
+    def next_wakeup(self) -> float | None:
+        """When ``next_actions`` must be called again (None: only on the next event)."""
+        times: list[float] = []
+        pt = self._pt.wakeup(self._next_focus_command_time(None))
+        if pt is not None:
+            times.append(pt)
+        if self._phase == "recover" and not self._inquiry_pending:
+            times.append(self._inquiry_due)
+        nxt = self._focus_wakeup()
+        if nxt is not None:
+            times.append(nxt)
+        return min(times) if times else None
+
+    # -- internals: focus state machine -----------------------------------------------------
+    def _focus_step(self, now: float) -> Action | None:
+        if self._phase == "recover":
+            if not self._inquiry_pending and now >= self._inquiry_due:
+                self._inquiry_pending = True
+                self.stats.focus_inquiries += 1
+                return FocusInquiry()
+            return None
+        if self._move is not None:
+            return None
+        if self._phase == "init":
+            if self._track_counts is not None:
+                return self._issue_move(self._track_counts, now, "return_move")
+            self._enter_recover(now)
+            return self._focus_step(now)
+        if self._phase == "track":
+            assert self._counts is not None
+            home = self._track_counts
+            if home is not None and abs(home - self._counts) > self.config.snap_counts:
+                # The best focus drifted away from the lens: re-focus the tracking frames.
+                return self._issue_move(home, now, "return_move")
+            if self._should_burst(now):
+                return self._start_burst(now)
+            return None
+        if self._phase == "burst_wait":
+            burst = self._burst
+            assert burst is not None
+            if now < burst.start_at:
+                return None
+            return self._issue_move(burst.order[0], now, "burst_move")
+        if self._phase == "burst_dwell":
+            burst = self._burst
+            assert burst is not None
+            if now < self._claim_end(burst.claims[burst.slot]) + self.config.guard_s:
+                return None
+            return self._advance_burst(now)
+        return None
+
+    def _focus_wakeup(self) -> float | None:
+        """When the focus machine must be looked at again (None: on the next event)."""
+        if self._phase == "track" and self._move is None:
+            commit = self._burst_commit_time(None)
+            if commit is not None and self._frames_flowing(commit):
+                return commit
+            return None
+        return self._next_focus_command_time(None)
+
+    def _next_focus_command_time(self, now: float | None) -> float | None:
+        """When the focus machine next wants the link (for wake-ups and link budgeting)."""
+        if self._move is not None or self._phase == "recover":
+            return None
+        margin = self.config.guard_s
+        if self._phase == "burst_dwell" and self._burst is not None:
+            return self._claim_end(self._burst.claims[self._burst.slot]) + margin
+        if self._phase == "burst_wait" and self._burst is not None:
+            return self._burst.start_at
+        if self._phase == "track" and self._plan is not None and self._t_ref is not None:
+            claim = self._track_claim_mid(now)
+            if claim is not None:
+                due = self._claim_end(claim) + margin
+                # A stalled capture: nothing to wait for until the next frame arrives.
+                return due if self._frames_flowing(due) else None
+        return None
+
+    def _should_burst(self, now: float) -> bool:
+        if self._t_ref is None or not self._frames_flowing(now):
+            return False
+        commit = self._burst_commit_time(now)
+        return commit is not None and now >= commit
+
+    def _burst_commit_time(self, now: float | None) -> float | None:
+        """When the next burst is committed: the start of its first claimed exposure.
+
+        Committing before that exposure can have been delivered (even with zero capture latency)
+        lets the frame be tagged ``burst`` on arrival; its settings are fixed from then on.
+        """
+        if self._plan is None:
+            return None
+        claim = self._track_claim_mid(now)
+        return None if claim is None else claim - self.config.exposure / 2.0
+
+    def _frames_flowing(self, now: float) -> bool:
+        """A frame was delivered recently (claims on a stalled capture would be wasted)."""
+        assert self._t_ref is not None
+        cfg = self.config
+        expected_age = (cfg.capture_latency_frames + STALL_FRAMES) * self._period + cfg.exposure
+        return now - self._t_ref <= expected_age
+
+    def _track_claim_mid(self, now: float | None) -> float | None:
+        """Mid-time of the tracking exposure that becomes the next burst's first slot."""
+        if self._counts is None or self._t_ref is None:
+            return None
+        first = self._first_mid_starting_after(self._track_from)
+        eligible = max(first, self._next_mid_after(self._last_tagged_mid))
+        if self._burst_now:
+            if now is None:
+                return eligible
+            latest = self._last_mid_ending_before(now - self.config.guard_s)
+            return max(eligible, latest)
+        return max(eligible, first + self.config.burst_every_frames * self._period)
+
+    def _start_burst(self, now: float) -> Action | None:
+        assert self._plan is not None
+        assert self._counts is not None
+        claim_mid = self._track_claim_mid(now)
+        current = self._counts
+        settings = list(self._plan)
+        # Take a planned setting where the lens already is (the tag carries the real counts).
+        nearest = min(range(len(settings)), key=lambda i: abs(settings[i] - current))
+        if abs(settings[nearest] - current) <= self.config.snap_counts:
+            settings[nearest] = current
+        home = self._track_counts if self._track_counts is not None else current
+        order = order_settings(current, tuple(settings), home, self.config)
+        burst = _Burst(self._next_burst_id, order)
+        self._next_burst_id += 1
+        self._burst = burst
+        self._pending.append(burst)
+        self._burst_now = False
+        self.stats.bursts_started += 1
+        assert claim_mid is not None
+        if order[0] == current:
+            # Slot 0 is the tracking-focus exposure being committed: the lens is already there.
+            burst.claims.append(claim_mid)
+            burst.tagged.append(False)
+            self._phase = "burst_dwell"
+        else:
+            # That exposure stays a tracking frame; the first move follows it.
+            burst.start_at = self._claim_end(claim_mid) + self.config.guard_s
+            self._phase = "burst_wait"
+        return self._focus_step(now)
+
+    def _advance_burst(self, now: float) -> Action | None:
+        burst = self._burst
+        assert burst is not None
+        burst.slot += 1
+        if burst.slot < len(burst.order):
+            target = burst.order[burst.slot]
+            if target == self._counts:
+                self._claim_after(now)
+                return None
+            return self._issue_move(target, now, "burst_move")
+        # All slots claimed: back to the tracking focus (the latest plan's centre).
+        self._burst = None
+        home = self._track_counts if self._track_counts is not None else burst.order[-1]
+        assert self._counts is not None
+        if abs(home - self._counts) <= self.config.focus_tolerance_counts:
+            self._phase = "track"
+            self._track_from = self._claim_end(burst.claims[-1])
+            return None
+        return self._issue_move(home, now, "return_move")
+
+    def _claim_after(self, t: float) -> None:
+        """Claim the first exposure starting after ``t`` (+margin) for the current slot."""
+        burst = self._burst
+        assert burst is not None
+        start = t + self.config.guard_s
+        mid = self._first_mid_starting_after(start) if self._t_ref is not None else start
+        mid = max(mid, self._next_mid_after(self._last_tagged_mid))
+        burst.claims.append(mid)
+        burst.tagged.append(False)
+        self._phase = "burst_dwell"
+
+    def _issue_move(self, target: int, now: float, phase: Phase) -> FocusMove:
+        move = _Move(self._next_move_id, int(target), now)
+        self._next_move_id += 1
+        self._move = move
+        self._phase = phase
+        if self._dwells and self._dwells[-1].t1 == math.inf:
+            self._dwells[-1].t1 = now  # the lens may move from the moment it is commanded
+        self._counts = None
+        self.stats.focus_moves += 1
+        return FocusMove(move.move_id, move.target)
+
+    def _settle(self, counts: int, t: float) -> None:
+        phase = self._phase
+        self._move = None
+        self._counts = int(counts)
+        self._last_reading = None
+        self._inquiry_pending = False
+        self._dwells.append(_Dwell(t, math.inf, int(counts)))
+        if phase == "burst_move" and self._burst is not None:
+            self._claim_after(t)
+        else:
+            self._phase = "track"
+            self._track_from = t + self.config.guard_s
+
+    def _enter_recover(self, t: float) -> None:
+        if self._dwells and self._dwells[-1].t1 == math.inf:
+            self._dwells[-1].t1 = t
+        self._move = None
+        self._counts = None
+        self._phase = "recover"
+        self._last_reading = None
+        self._inquiry_pending = False
+        self._inquiry_due = t
+        if self._burst is not None:
+            self._fail(self._burst)
+
+    def _fail(self, burst: _Burst) -> None:
+        """A burst cannot complete: forget its claims (its frames are tagged ``track``)."""
+        if burst in self._pending:
+            self._pending.remove(burst)
+            self.stats.bursts_incomplete += 1
+        if burst is self._burst:
+            self._burst = None
+            if self._phase in ("burst_dwell", "burst_wait"):
+                self._phase = "track"
+                self._track_from = -math.inf if self._counts is None else self._dwells[-1].t0
+            elif self._phase == "burst_move":
+                self._phase = "return_move"
+
+    # -- internals: frame timing and tags ---------------------------------------------------
+    def _update_timing(self, index: int, t: float) -> None:
+        """Phase-locked estimate of the exposure clock: smooths timestamp jitter out of the
+        predictions (a single late timestamp must not shift every future claim)."""
+        if self._t_ref is None or self._last_index is None or index <= self._last_index:
+            self._t_ref, self._last_index = t, index
+            return
+        steps = index - self._last_index
+        predicted = self._t_ref + steps * self._period
+        innovation = t - predicted
+        if abs(innovation) < self._period / 2.0:
+            self._t_ref = predicted + PHASE_GAIN * innovation
+            period = self._period + PERIOD_GAIN * innovation / steps
+            nominal = self.config.period_s
+            self._period = min(max(period, 0.8 * nominal), 1.25 * nominal)
+        else:
+            self._t_ref = t  # a stall or a clock step: re-lock on this frame
+        self._last_index = index
+
+    def _first_mid_starting_after(self, t: float) -> float:
+        """Mid-time of the first predicted exposure that starts at or after ``t``."""
+        assert self._t_ref is not None
+        half = self.config.exposure / 2.0
+        k = math.ceil((t + half - self._t_ref) / self._period - 1e-9)
+        return self._t_ref + k * self._period
+
+    def _last_mid_ending_before(self, t: float) -> float:
+        """Mid-time of the last predicted exposure that ends at or before ``t``."""
+        assert self._t_ref is not None
+        half = self.config.exposure / 2.0
+        k = math.floor((t - half - self._t_ref) / self._period + 1e-9)
+        return self._t_ref + k * self._period
+
+    def _next_mid_after(self, mid: float) -> float:
+        """Mid-time of the predicted exposure after the one at ``mid`` (−inf: none tagged yet)."""
+        if mid == -math.inf or self._t_ref is None:
+            return -math.inf
+        k = math.floor((mid - self._t_ref) / self._period + 0.5) + 1
+        return self._t_ref + k * self._period
+
+    def _claim_end(self, mid: float) -> float:
+        return mid + self.config.exposure / 2.0
+
+    def _counts_during(self, a: float, b: float) -> int | None:
+        # The next move is issued exactly ``margin`` after a claimed exposure ends: compare with
+        # a tolerance far below any timing that matters so rounding cannot lose that frame.
+        margin = self.config.timing_margin_s - TIME_EPS_S
+        for dwell in reversed(self._dwells):
+            if dwell.t0 + margin <= a and b <= dwell.t1 - margin:
+                return dwell.counts
+            if dwell.t1 <= a:
+                break
+        return None
+
+    def _claim_for(self, t: float, counts: int) -> tuple[int, int] | None:
+        tol = self._period / 2.0
+        for burst in self._pending:
+            for slot, mid in enumerate(burst.claims):
+                if burst.tagged[slot] or abs(t - mid) >= tol or counts != burst.order[slot]:
+                    continue
+                burst.tagged[slot] = True
+                if len(burst.claims) == len(burst.order) and all(burst.tagged):
+                    self.stats.bursts_completed += 1
+                    self._burst_times.append(t)
+                    self._pending.remove(burst)
+                return (burst.burst_id, slot)
+        return None
+
+    def _drop_missed_claims(self, t: float) -> None:
+        tol = self._period / 2.0
+        for burst in list(self._pending):
+            if any(
+                not done and t >= mid + tol
+                for mid, done in zip(burst.claims, burst.tagged, strict=True)
+            ):
+                self._fail(burst)
+
+
+class _PanTilt:
+    """Pan/tilt position model (dead reckoning between inquiries) and centring controller."""
+
+    def __init__(self, config: SchedulerConfig) -> None:
+        self.config = config
+        self.busy = False  # one pan/tilt action outstanding at a time (its own VISCA socket)
+        self.poll_due: float = 0.0
+        self._t0 = 0.0
+        self._pan0 = 0.0
+        self._tilt0 = 0.0
+        self._rate = (0.0, 0.0)  # deg/s since _t0 (drive) …
+        self._goal: tuple[float, float] | None = None  # … or an absolute target
+        self._last_cmd_t = -math.inf
+        self._last_cmd: PanTiltDrive | PanTiltAbsolute | PanTiltStop | None = None
+        self._target: tuple[float, float] | None = None  # target direction, pan/tilt frame, deg
+        self._stop_pending = False
+        self._eval_due = math.inf
+        self._last_focus_cmd = -math.inf
+        self._last_step = -math.inf
+
+    def at(self, t: float) -> tuple[float, float]:
+        dt = max(0.0, t - self._t0)
+        if self._goal is not None:
+            idx = self.config.absolute_speed_index
+            speed_p = speed_of_index(idx)
+            speed_t = speed_of_index(min(idx, TILT_MAX_SPEED_INDEX))
+            return (
+                _approach(self._pan0, self._goal[0], speed_p, dt),
+                _approach(self._tilt0, self._goal[1], speed_t, dt),
+            )
+        return self._pan0 + self._rate[0] * dt, self._tilt0 + self._rate[1] * dt
+
+    def anchor(self, t: float, pan: float, tilt: float) -> None:
+        self._t0, self._pan0, self._tilt0 = t, pan, tilt
+        if self._goal is not None and (pan, tilt) == self._goal:
+            self._goal = None
+        self.busy = False
+
+    def focus_command_at(self, t: float) -> None:
+        self._last_focus_cmd = t
+
+    def on_centroid(
+        self, t: float, centroid: tuple[float, float] | None, pan: float, tilt: float
+    ) -> None:
+        cfg = self.config
+        if cfg.pan_tilt_mode == "off":
+            return
+        if centroid is None:
+            if self._target is not None or self._rate != (0.0, 0.0) or self._goal is not None:
+                self._stop_pending = True
+                self._eval_due = self._last_cmd_t + cfg.pan_tilt_min_interval_s
+            self._target = None
+            return
+        w, h = cfg.frame_size
+        ex = cfg.pan_sign * pixel_offset_to_deg(
+            centroid[0] - (w - 1) / 2.0, cfg.focal_length_mm, cfg.pixel_pitch_mm
+        )
+        ey = cfg.tilt_sign * pixel_offset_to_deg(
+            (h - 1) / 2.0 - centroid[1], cfg.focal_length_mm, cfg.pixel_pitch_mm
+        )
+        # The target's direction in the pan/tilt frame at that exposure; the error *now* subtracts
+        # the camera's own motion since then (the capture latency would otherwise overshoot).
+        self._target = (pan + ex, tilt + ey)
+        self._stop_pending = False
+        self._eval_due = min(self._eval_due, self._last_cmd_t + cfg.pan_tilt_min_interval_s)
+
+    def step(self, now: float, next_focus_cmd: float | None) -> Action | None:
+        cfg = self.config
+        self._last_step = now
+        if cfg.pan_tilt_mode == "off" or self.busy:
+            return None
+        # Budget the link: keep a camera command slot free around focus commands.
+        slot = cfg.command_slot_s
+        if now - self._last_focus_cmd < slot - TIME_EPS_S:
+            return None
+        if next_focus_cmd is not None and 0.0 <= next_focus_cmd - now < slot - TIME_EPS_S:
+            return None
+        if now >= self._eval_due:
+            cmd = self._decide(now)
+            if cmd is not None:
+                self._apply(cmd, now)
+                self.busy = True
+                return cmd
+            # Nothing to change now; while following, look again after one command interval.
+            follow = self._target is not None and cfg.pan_tilt_mode == "drive"
+            self._eval_due = now + cfg.pan_tilt_min_interval_s if follow else math.inf
+        if now >= self.poll_due:
+            self.poll_due = now + cfg.pan_tilt_poll_interval_s
+            self.busy = True
+            return PanTiltInquiry()
+        return None
+
+    def wakeup(self, next_focus_cmd: float | None) -> float | None:
+        if self.config.pan_tilt_mode == "off" or self.busy:
+            return None
+        slot = self.config.command_slot_s
+        t = max(min(self.poll_due, self._eval_due), self._last_focus_cmd + slot, self._last_step)
+        if next_focus_cmd is not None and 0.0 <= next_focus_cmd - t < slot - TIME_EPS_S:
+            t = next_focus_cmd + slot  # deferred behind that focus command (see ``step``)
+        return None if t == math.inf else t
+
+    def _decide(self, now: float) -> PanTiltDrive | PanTiltAbsolute | PanTiltStop | None:
+        cfg = self.config
+        if self._stop_pending:
+            return PanTiltStop()
+        if self._target is None:
+            return None
+        pan_now, tilt_now = self.at(now)
+        err_p = self._target[0] - pan_now
+        err_t = self._target[1] - tilt_now
+        dead = cfg.pan_tilt_deadband_deg
+        if cfg.pan_tilt_mode == "absolute":
+            if abs(err_p) <= dead and abs(err_t) <= dead:
+                return None
+            last = self._last_cmd
+            if isinstance(last, PanTiltAbsolute) and (
+                abs(last.pan_deg - self._target[0]) <= dead
+                and abs(last.tilt_deg - self._target[1]) <= dead
+            ):
+                return None
+            idx = cfg.absolute_speed_index
+            return PanTiltAbsolute(
+                self._target[0], self._target[1], idx, min(idx, TILT_MAX_SPEED_INDEX)
+            )
+        rate_p = 0.0 if abs(err_p) <= dead else cfg.pan_tilt_gain_per_s * err_p
+        rate_t = 0.0 if abs(err_t) <= dead else cfg.pan_tilt_gain_per_s * err_t
+        ip = visca_speed_index(rate_p, PAN_MAX_SPEED_INDEX)
+        it = visca_speed_index(rate_t, TILT_MAX_SPEED_INDEX)
+        if ip == 0 and it == 0:
+            return None if self._rate == (0.0, 0.0) else PanTiltStop()
+        last = self._last_cmd
+        if isinstance(last, PanTiltDrive) and (last.pan_speed, last.tilt_speed) == (ip, it):
+            return None
+        return PanTiltDrive(ip, it, speed_of_index(ip), speed_of_index(it))
+
+    def _apply(self, cmd: PanTiltDrive | PanTiltAbsolute | PanTiltStop, now: float) -> None:
+        pan, tilt = self.at(now)
+        self._t0, self._pan0, self._tilt0 = now, pan, tilt
+        self._rate = (0.0, 0.0)
+        self._goal = None
+        if isinstance(cmd, PanTiltDrive):
+            self._rate = (cmd.pan_rate_deg_s, cmd.tilt_rate_deg_s)
+        elif isinstance(cmd, PanTiltAbsolute):
+            self._goal = (cmd.pan_deg, cmd.tilt_deg)
+        else:
+            self._stop_pending = False
+        self._last_cmd = cmd
+        self._last_cmd_t = now
+        self._eval_due = now + self.config.pan_tilt_min_interval_s
+
+
+def _approach(start: float, goal: float, speed: float, dt: float) -> float:
+    step = speed * dt
+    if abs(goal - start) <= step:
+        return goal
+    return start + math.copysign(step, goal - start)

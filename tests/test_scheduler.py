@@ -1,0 +1,601 @@
+"""Scheduler: frame tags, burst timing, rate limit, link budget and pan/tilt control.
+
+Most tests drive the pure scheduler with a small discrete-event model of the camera written here
+independently (motor as a function of time, link delays, periodic exposures delivered after a
+capture latency, seeded jitter and drops) and check every tag against that model's truth.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+import random
+from dataclasses import dataclass, field, replace
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dffd.core.types import FrameTag
+from dffd.scheduler import (
+    FocusInquiry,
+    FocusMove,
+    PanTiltAbsolute,
+    PanTiltDrive,
+    PanTiltInquiry,
+    PanTiltStop,
+    Scheduler,
+    SchedulerConfig,
+    depth_rate_limit,
+    focus_move_time_s,
+    link_time_s,
+    order_settings,
+    pixel_offset_to_deg,
+    speed_of_index,
+    visca_speed_index,
+)
+
+BASE = SchedulerConfig(
+    fps=30.0,
+    capture_latency_frames=2,
+    burst_every_frames=6,
+    focus_speed_counts_per_s=20000.0,
+    initial_focus_counts=5000,
+    pan_tilt_mode="off",
+)
+PLAN = (4700, 5000, 5300)
+
+
+# -- a model camera, independent of the scheduler ----------------------------------------------
+@dataclass
+class Motor:
+    """Focus position as piecewise-linear segments (t0, c0, t1, c1)."""
+
+    segments: list[tuple[float, float, float, float]] = field(default_factory=list)
+
+    def position(self, t: float) -> float:
+        for t0, c0, t1, c1 in reversed(self.segments):
+            if t >= t0:
+                if t >= t1:
+                    return c1
+                return c0 + (c1 - c0) * (t - t0) / (t1 - t0)
+        return self.segments[0][1]
+
+    def moved_during(self, a: float, b: float) -> bool:
+        return any(t0 < b and t1 > a and c0 != c1 for t0, c0, t1, c1 in self.segments)
+
+
+@dataclass
+class Harness:
+    config: SchedulerConfig
+    seed: int = 1
+    jitter_s: float = 0.0  # timestamp noise of delivered frames
+    drop: set[int] = field(default_factory=set)  # frame indices the capture loses
+    fail_moves: set[int] = field(default_factory=set)  # move ids that time out
+    plan: tuple[int, int, int] | None = PLAN
+    sigma: float | None = None
+    centroid: tuple[float, float] | None = None
+    phase: float = 0.0123  # exposure mid of frame 0
+
+    def __post_init__(self) -> None:
+        self.rng = random.Random(self.seed)
+        self.sched = Scheduler(self.config)
+        self.motor = Motor([(0.0, 5000.0, 0.0, 5000.0)])
+        self.events: list[tuple[float, int, str, object]] = []
+        self.seq = 0
+        self.tags: list[tuple[int, float, FrameTag]] = []
+        self.actions: list[tuple[float, object]] = []
+        self.wrong: list[str] = []
+        self.now = 0.0
+        self.period = 1.0 / self.config.fps
+        self.half = self.config.exposure / 2.0
+        self.next_index = 0
+
+    def push(self, t: float, kind: str, data: object = None) -> None:
+        self.seq += 1
+        heapq.heappush(self.events, (t, self.seq, kind, data))
+
+    def run(self, seconds: float) -> None:
+        latency = self.config.capture_latency_frames * self.period
+        first = max(self.next_index, math.ceil((self.now - self.phase) / self.period))
+        n = int(seconds * self.config.fps)
+        self.next_index = first + n
+        for i in range(first, first + n):
+            mid = self.phase + i * self.period
+            if i not in self.drop:
+                self.push(mid + self.half + latency + 0.001, "frame", (i, mid))
+        end = self.phase + (first + n) * self.period + latency + 0.2
+        self.step(self.now)
+        while self.events and self.events[0][0] < end:
+            t, _, kind, data = heapq.heappop(self.events)
+            assert t >= self.now - 1e-12
+            self.now = t
+            self.handle(kind, data)
+            self.step(t)
+
+    def step(self, now: float) -> None:
+        for action in self.sched.next_actions(now):
+            self.actions.append((now, action))
+            self.execute(now, action)
+        wake = self.sched.next_wakeup()
+        if wake is not None:
+            # The scheduler must never ask to be woken in the past after acting (busy loop).
+            assert wake > now, (wake, now, self.sched.phase)
+            if wake < now + 10.0:
+                self.push(wake, "wake")
+
+    def execute(self, now: float, action: object) -> None:
+        cfg = self.config
+        if isinstance(action, FocusMove):
+            start = now + link_time_s(9, cfg.baudrate) + self.rng.uniform(0, cfg.command_slot_s)
+            here = self.motor.position(start)
+            end = start + abs(action.counts - here) / cfg.focus_speed_counts_per_s
+            if action.move_id in self.fail_moves:
+                # The motor moves but the Completion is lost; the shell times out later.
+                self.motor.segments.append((start, here, end, float(action.counts)))
+                self.push(end + 0.2, "focus_failed", action.move_id)
+                return
+            self.motor.segments.append((start, here, end, float(action.counts)))
+            self.push(end + link_time_s(3, cfg.baudrate), "focus_done", action.move_id)
+        elif isinstance(action, FocusInquiry):
+            self.push(now + 0.01, "focus_pos", round(self.motor.position(now + 0.005)))
+        elif isinstance(action, PanTiltInquiry):
+            self.push(now + 0.02, "pt_pos")
+        elif isinstance(action, PanTiltDrive | PanTiltAbsolute | PanTiltStop):
+            self.push(now + 0.02, "pt_done")
+
+    def handle(self, kind: str, data: object) -> None:
+        s = self.sched
+        if kind == "frame":
+            assert isinstance(data, tuple)
+            index, mid = data
+            t = mid + self.rng.uniform(-self.jitter_s, self.jitter_s)
+            tag = s.on_frame(index, t)
+            self.tags.append((index, mid, tag))
+            self.check(index, mid, tag)
+            counts = tag.focus_counts if tag.focus_counts is not None else 5000
+            plan = self.plan
+            s.on_estimate(
+                t,
+                sigma_m=self.sigma,
+                plan=plan,
+                centroid_px=self.centroid,
+                pan_deg=tag.pan_deg,
+                tilt_deg=tag.tilt_deg,
+            )
+            del counts
+        elif kind == "focus_done":
+            assert isinstance(data, int)
+            s.on_focus_completed(data, self.now)
+        elif kind == "focus_failed":
+            assert isinstance(data, int)
+            s.on_focus_failed(data, self.now)
+        elif kind == "focus_pos":
+            assert isinstance(data, int)
+            s.on_focus_position(self.now, data)
+        elif kind == "pt_pos":
+            s.on_pan_tilt_position(self.now, 0.0, 0.0)
+        elif kind == "pt_done":
+            s.on_pan_tilt_done(self.now)
+
+    def check(self, index: int, mid: float, tag: FrameTag) -> None:
+        a, b = mid - self.half, mid + self.half
+        if tag.role == "transit":
+            if tag.focus_counts is not None:
+                self.wrong.append(f"frame {index}: transit with counts")
+            return
+        if self.motor.moved_during(a, b):
+            self.wrong.append(f"frame {index}: {tag.role} but the lens moved during exposure")
+        true = self.motor.position(mid)
+        if tag.focus_counts is None or abs(true - tag.focus_counts) > 0.5:
+            self.wrong.append(f"frame {index}: tagged {tag.focus_counts}, lens at {true}")
+        if (tag.role == "burst") != (tag.burst is not None):
+            self.wrong.append(f"frame {index}: role {tag.role} with burst {tag.burst}")
+
+    def bursts(self) -> dict[int, list[tuple[int, int]]]:
+        out: dict[int, list[tuple[int, int]]] = {}
+        for index, _, tag in self.tags:
+            if tag.burst is not None:
+                out.setdefault(tag.burst[0], []).append((tag.burst[1], index))
+        return out
+
+    def achieved_hz(self) -> float:
+        done = sorted(
+            max(i for _, i in slots) for slots in self.bursts().values() if len(slots) == 3
+        )
+        if len(done) < 3:
+            return 0.0
+        return (len(done) - 1) / ((done[-1] - done[0]) / self.config.fps)
+
+
+# -- pure helpers ------------------------------------------------------------------------------
+def test_link_and_move_times_follow_the_baud_rate() -> None:
+    assert link_time_s(9, 9600) == pytest.approx(9 * 10 / 9600)
+    assert focus_move_time_s(BASE, 0) == 0.0
+    expected = 90 / 9600 + 1 / 60 + 400 / 20000 + 30 / 9600
+    assert focus_move_time_s(BASE, 400) == pytest.approx(expected)
+    assert focus_move_time_s(replace(BASE, baudrate=38400), 400) < expected
+
+
+def test_rate_limit_by_hand() -> None:
+    # E = 33.3 ms, guards 2×6 ms: a 300-count move takes 9.4+16.7+15+3.1 = 44.2 ms → 89.5 ms
+    # wait → 3 periods; a 600-count move 59.2 ms → 104.5 ms → 4 periods; cycle 3+4+3+6 = 16.
+    limit = depth_rate_limit(BASE, 300)
+    assert limit.move_frames == (3, 4, 3)
+    assert limit.cycle_frames == 16
+    assert limit.depth_hz == pytest.approx(30 / 16)
+    # Without prediction each move also waits for the claimed frame to be delivered.
+    slow = depth_rate_limit(BASE, 300, predictive=False)
+    assert slow.depth_hz < limit.depth_hz
+    assert slow.move_frames == (5, 6, 5)
+    # More tracking frames per burst, faster motor, higher baud rate: monotone effects.
+    assert depth_rate_limit(replace(BASE, burst_every_frames=20), 300).depth_hz < limit.depth_hz
+    fast = replace(BASE, focus_speed_counts_per_s=1e6, baudrate=115200, command_slot_s=0.001)
+    assert depth_rate_limit(fast, 300).move_frames == (2, 2, 2)
+    assert depth_rate_limit(BASE, 0).cycle_frames == 3 + BASE.burst_every_frames
+
+
+def test_visca_speed_index_is_nearest_and_never_zero_for_motion() -> None:
+    assert visca_speed_index(0.0, 0x18) == 0
+    assert visca_speed_index(0.01, 0x18) == 1
+    assert visca_speed_index(-0.01, 0x18) == -1
+    assert visca_speed_index(14.0, 0x18) == 10
+    assert visca_speed_index(-52.0, 0x18) == -16
+    assert visca_speed_index(1000.0, 0x18) == 0x18
+    assert visca_speed_index(1000.0, 0x14) == 0x14
+    assert speed_of_index(-10) == -14.0
+    assert speed_of_index(0) == 0.0
+
+
+def test_pixel_offset_to_angle() -> None:
+    assert pixel_offset_to_deg(0.0, 4.0, 0.006) == 0.0
+    # 100 px × 6 µm = 0.6 mm at f = 4 mm: atan(0.15)
+    assert pixel_offset_to_deg(100.0, 4.0, 0.006) == pytest.approx(math.degrees(math.atan(0.15)))
+    assert pixel_offset_to_deg(-100.0, 4.0, 0.006) < 0
+
+
+def test_order_settings_minimises_travel() -> None:
+    # Lens at the centre: take it first, then one side, the other, back to the centre.
+    order = order_settings(5000, (4700, 5000, 5300), 5000, BASE)
+    assert order[0] == 5000
+    assert sorted(order) == [4700, 5000, 5300]
+    # Lens far on one side, home in the middle: sweep monotonically from the near end.
+    order = order_settings(4000, (4700, 5000, 5300), 5000, BASE)
+    assert order[0] == 4700
+    assert order[1] == 5000 or order == (4700, 5300, 5000)
+
+
+def test_config_rejects_nonsense() -> None:
+    with pytest.raises(ValueError, match="fps"):
+        SchedulerConfig(fps=0)
+    with pytest.raises(ValueError, match="exposure_s"):
+        SchedulerConfig(fps=30, exposure_s=0.05)
+    with pytest.raises(ValueError, match="burst_every_frames"):
+        SchedulerConfig(burst_every_frames=-1)
+
+
+# -- the scheduler against the model camera ----------------------------------------------------
+def test_tags_are_truthful_and_bursts_reach_the_rate_limit() -> None:
+    h = Harness(BASE)
+    h.run(6.0)
+    assert h.wrong == []
+    bursts = h.bursts()
+    complete = [b for b in bursts.values() if sorted(s for s, _ in b) == [0, 1, 2]]
+    assert len(complete) >= 8
+    # Each complete burst covers three distinct settings bracketing the plan.
+    for burst_id, slots in bursts.items():
+        if len(slots) == 3:
+            counts = {h.tags[i][2].focus_counts for _, i in slots}
+            assert counts == set(PLAN), burst_id
+    limit = depth_rate_limit(BASE, 300).depth_hz
+    assert h.achieved_hz() >= 0.9 * limit
+    assert h.sched.stats.bursts_incomplete == 0
+    # Tracking frames only at the tracking focus; transit frames exist (the lens does move).
+    roles = h.sched.stats.frames
+    assert roles["transit"] > 0
+    # Tracking frames are at the tracking focus, except the odd unclaimed frame exposed whole at a
+    # burst setting (tagged honestly with its counts).
+    track = [tag.focus_counts for _, _, tag in h.tags if tag.role == "track"]
+    assert set(track) <= set(PLAN)
+    assert track.count(5000) >= 0.9 * len(track)
+    assert h.sched.achieved_rate_hz(h.now) == pytest.approx(h.achieved_hz(), rel=0.15)
+
+
+def test_first_move_goes_to_the_initial_focus() -> None:
+    h = Harness(replace(BASE, initial_focus_counts=6000), plan=None)
+    h.run(1.0)
+    moves = [a for _, a in h.actions if isinstance(a, FocusMove)]
+    assert [m.counts for m in moves] == [6000]
+    assert h.wrong == []
+    late = [tag for _, mid, tag in h.tags if mid > 0.5]
+    assert late
+    assert all(tag.role == "track" and tag.focus_counts == 6000 for tag in late)
+
+
+def test_no_plan_no_bursts() -> None:
+    h = Harness(BASE, plan=None)
+    h.run(2.0)
+    assert h.sched.stats.bursts_started == 0
+    assert not any(tag.role == "burst" for _, _, tag in h.tags)
+
+
+@pytest.mark.parametrize("latency", [0, 1, 3, 5])
+def test_latency_does_not_cost_rate_in_steady_state(latency: int) -> None:
+    cfg = replace(BASE, capture_latency_frames=latency)
+    h = Harness(cfg)
+    h.run(5.0)
+    assert h.wrong == []
+    assert h.achieved_hz() >= 0.9 * depth_rate_limit(cfg, 300).depth_hz
+
+
+def test_timestamp_jitter_within_margin_never_mis_tags() -> None:
+    cfg = replace(BASE, timing_margin_s=0.004)
+    h = Harness(cfg, jitter_s=0.002, seed=7)
+    h.run(5.0)
+    assert h.wrong == []
+    assert h.sched.stats.bursts_completed >= 6
+
+
+def test_dropped_claimed_frame_makes_an_incomplete_burst_and_work_goes_on() -> None:
+    probe = Harness(BASE)
+    probe.run(2.0)
+    first_burst_frames = [i for i, _, tag in probe.tags if tag.burst == (2, 1)]
+    assert first_burst_frames
+    h = Harness(BASE, drop={first_burst_frames[0]})
+    h.run(4.0)
+    assert h.wrong == []
+    assert h.sched.stats.bursts_incomplete == 1
+    assert 2 not in {b for b, slots in h.bursts().items() if len(slots) == 3}
+    assert h.sched.stats.bursts_completed >= 4
+
+
+def test_failed_focus_move_is_recovered_by_inquiry() -> None:
+    h = Harness(BASE, fail_moves={3})
+    h.run(4.0)
+    assert h.wrong == []
+    assert h.sched.stats.focus_failures == 1
+    assert h.sched.stats.focus_inquiries >= 2
+    assert h.sched.stats.bursts_incomplete == 1
+    # After recovery the scheduler returns to bursting.
+    assert any(tag.role == "burst" for _, mid, tag in h.tags if mid > 2.0)
+
+
+def test_unknown_initial_focus_is_inquired_until_two_readings_agree() -> None:
+    h = Harness(replace(BASE, initial_focus_counts=None), plan=None)
+    h.run(1.0)
+    inquiries = [a for _, a in h.actions if isinstance(a, FocusInquiry)]
+    assert len(inquiries) >= 2
+    assert h.sched.focus_counts == 5000
+    assert h.wrong == []
+    assert h.tags[-1][2].role == "track"
+
+
+def test_late_or_duplicate_completion_is_ignored() -> None:
+    s = Scheduler(BASE)
+    [move] = s.next_actions(0.0)
+    assert isinstance(move, FocusMove)
+    s.on_focus_completed(move.move_id + 7, 0.05)
+    assert s.focus_counts is None
+    s.on_focus_completed(move.move_id, 0.06)
+    assert s.focus_counts == 5000
+    s.on_focus_completed(move.move_id, 0.07)
+    assert s.phase == "track"
+
+
+def test_inquiry_equal_to_target_settles_an_outstanding_move() -> None:
+    s = Scheduler(BASE)
+    [move] = s.next_actions(0.0)
+    assert isinstance(move, FocusMove)
+    s.on_focus_position(0.03, 4990)
+    assert s.focus_counts is None
+    s.on_focus_position(0.05, 5000)
+    assert s.focus_counts == 5000
+
+
+def test_frames_before_any_focus_knowledge_are_transit() -> None:
+    s = Scheduler(BASE)
+    s.next_actions(0.0)
+    tag = s.on_frame(0, 0.01)
+    assert tag == FrameTag("transit", None, 0.0, 0.0)
+
+
+def test_sigma_trigger_starts_bursts_sooner() -> None:
+    cfg = replace(BASE, burst_every_frames=30, sigma_trigger_m=0.05)
+    calm = Harness(cfg, sigma=0.01)
+    calm.run(4.0)
+    nervous = Harness(cfg, sigma=0.2)
+    nervous.run(4.0)
+    assert nervous.wrong == []
+    assert nervous.sched.stats.bursts_completed > 2 * calm.sched.stats.bursts_completed
+
+
+def test_request_burst_and_cancel() -> None:
+    cfg = replace(BASE, burst_every_frames=1000)
+    h = Harness(cfg)
+    h.run(1.0)
+    assert h.sched.stats.bursts_started == 0
+    h.sched.request_burst()
+    h.sched.cancel_bursts()
+    h.plan = None
+    h.run(1.0)
+    assert h.sched.stats.bursts_started == 0
+
+
+def test_moving_plan_retargets_the_tracking_focus() -> None:
+    h = Harness(BASE, plan=(5700, 6000, 6300))
+    h.run(2.0)
+    assert h.wrong == []
+    assert h.sched.track_counts == 6000
+    late = [tag.focus_counts for _, mid, tag in h.tags if mid > 1.0 and tag.role == "track"]
+    assert late
+    assert late.count(6000) >= 0.9 * len(late)
+    assert 5000 not in late
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    fps=st.sampled_from([15.0, 25.0, 30.0, 60.0]),
+    latency=st.integers(0, 4),
+    every=st.integers(0, 12),
+    speed=st.sampled_from([5000.0, 20000.0, 80000.0]),
+    exposure_fraction=st.sampled_from([0.3, 0.7, 1.0]),
+    spacing=st.sampled_from([50, 300, 900]),
+    seed=st.integers(0, 1000),
+)
+def test_property_tags_truthful_and_rate_near_limit(
+    fps: float,
+    latency: int,
+    every: int,
+    speed: float,
+    exposure_fraction: float,
+    spacing: int,
+    seed: int,
+) -> None:
+    cfg = replace(
+        BASE,
+        fps=fps,
+        capture_latency_frames=latency,
+        burst_every_frames=every,
+        focus_speed_counts_per_s=speed,
+        exposure_s=exposure_fraction / fps,
+        snap_counts=min(40, spacing // 3),
+    )
+    plan = (5000 - spacing, 5000, 5000 + spacing)
+    h = Harness(cfg, plan=plan, seed=seed)
+    h.run(4.0)
+    assert h.wrong == []
+    assert h.achieved_hz() >= 0.9 * depth_rate_limit(cfg, spacing).depth_hz
+
+
+# -- pan/tilt ----------------------------------------------------------------------------------
+PT = replace(
+    BASE,
+    pan_tilt_mode="drive",
+    focal_length_mm=4.0,
+    pixel_pitch_mm=0.006,
+    frame_size=(640, 480),
+    pan_tilt_poll_interval_s=0.25,
+)
+
+
+def _pan_tilt_commands(h: Harness) -> list[tuple[float, object]]:
+    return [
+        (t, a) for t, a in h.actions if isinstance(a, PanTiltDrive | PanTiltAbsolute | PanTiltStop)
+    ]
+
+
+def test_target_right_and_up_drives_pan_right_and_tilt_up() -> None:
+    h = Harness(PT, centroid=(600.0, 40.0))
+    h.run(0.5)
+    cmds = _pan_tilt_commands(h)
+    assert cmds
+    first = cmds[0][1]
+    assert isinstance(first, PanTiltDrive)
+    assert first.pan_speed > 0
+    assert first.tilt_speed > 0
+    assert first.pan_rate_deg_s == speed_of_index(first.pan_speed)
+
+
+def test_centred_target_gives_no_motion_and_lost_target_stops() -> None:
+    h = Harness(PT, centroid=(319.5, 239.5))
+    h.run(0.5)
+    assert _pan_tilt_commands(h) == []
+    h2 = Harness(PT, centroid=(600.0, 239.5))
+    h2.run(0.3)
+    assert isinstance(_pan_tilt_commands(h2)[-1][1], PanTiltDrive)
+    h2.centroid = None
+    h2.run(0.3)
+    assert isinstance(_pan_tilt_commands(h2)[-1][1], PanTiltStop)
+    assert sum(isinstance(a, PanTiltStop) for _, a in _pan_tilt_commands(h2)) == 1
+
+
+def test_pan_tilt_command_rate_and_link_budget() -> None:
+    cfg = replace(PT, pan_tilt_min_interval_s=0.1, pan_tilt_gain_per_s=3.0)
+    h = Harness(cfg, centroid=(600.0, 400.0))
+    # A target that keeps moving in the image so the controller keeps changing its command.
+    h.run(3.0)
+    cmds = _pan_tilt_commands(h)
+    times = [t for t, _ in cmds]
+    assert all(b - a >= 0.1 - 1e-9 for a, b in itertools.pairwise(times))
+    focus_times = [t for t, a in h.actions if isinstance(a, FocusMove)]
+    pt_times = [t for t, a in h.actions if isinstance(a, (*PT_CMDS, PanTiltInquiry))]
+    for ft in focus_times:
+        assert all(not (0 <= pt - ft < cfg.command_slot_s - 1e-6) for pt in pt_times)
+    # Focus and pan/tilt both keep working (two sockets): bursts still complete.
+    assert h.wrong == []
+    assert h.sched.stats.bursts_completed >= 4
+    assert any(isinstance(a, PanTiltInquiry) for _, a in h.actions)
+
+
+PT_CMDS = (PanTiltDrive, PanTiltAbsolute, PanTiltStop)
+
+
+def test_error_is_corrected_for_camera_motion_since_exposure() -> None:
+    s = Scheduler(replace(PT, pan_tilt_poll_interval_s=100.0))
+    s.next_actions(0.0)
+    s.on_pan_tilt_position(0.0, 0.0, 0.0)
+    # Target 5° right at exposure t=1.0 while the camera was at pan 0 …
+    offset_px = math.tan(math.radians(5.0)) * 4.0 / 0.006
+    s.on_estimate(
+        1.0,
+        sigma_m=None,
+        plan=None,
+        centroid_px=(319.5 + offset_px, 239.5),
+        pan_deg=0.0,
+        tilt_deg=0.0,
+    )
+    # … but the camera is already at 5° now: no command.
+    s.on_pan_tilt_position(1.05, 5.0, 0.0)
+    assert [a for a in s.next_actions(1.1) if isinstance(a, PT_CMDS)] == []
+
+
+def test_absolute_mode_targets_the_target_direction() -> None:
+    s = Scheduler(replace(PT, pan_tilt_mode="absolute", pan_tilt_poll_interval_s=100.0))
+    s.next_actions(0.0)
+    s.on_pan_tilt_position(0.0, 10.0, -2.0)
+    offset_px = math.tan(math.radians(3.0)) * 4.0 / 0.006
+    s.on_estimate(
+        0.5,
+        sigma_m=None,
+        plan=None,
+        centroid_px=(319.5 - offset_px, 239.5),
+        pan_deg=10.0,
+        tilt_deg=-2.0,
+    )
+    cmds = [a for a in s.next_actions(0.6) if isinstance(a, PanTiltAbsolute)]
+    assert len(cmds) == 1
+    assert cmds[0].pan_deg == pytest.approx(7.0)
+    assert cmds[0].tilt_deg == pytest.approx(-2.0)
+    # The same goal is not re-sent.
+    s.on_pan_tilt_done(0.62)
+    s.on_estimate(
+        0.7,
+        sigma_m=None,
+        plan=None,
+        centroid_px=(319.5 - offset_px, 239.5),
+        pan_deg=10.0,
+        tilt_deg=-2.0,
+    )
+    assert [a for a in s.next_actions(0.8) if isinstance(a, PanTiltAbsolute)] == []
+
+
+def test_pan_tilt_model_dead_reckons_between_inquiries() -> None:
+    s = Scheduler(replace(PT, pan_tilt_poll_interval_s=100.0))
+    s.next_actions(0.0)
+    s.on_pan_tilt_position(0.0, 0.0, 0.0)
+    s.on_estimate(0.2, sigma_m=None, plan=None, centroid_px=(639.0, 239.5))
+    [drive] = [a for a in s.next_actions(0.3) if isinstance(a, PanTiltDrive)]
+    s.on_pan_tilt_done(0.32)
+    pan, tilt = s.pan_tilt_at(1.3)
+    assert pan == pytest.approx(drive.pan_rate_deg_s * 1.0)
+    assert tilt == 0.0
+    # A frame is tagged with the modelled pan at its exposure.
+    tag = s.on_frame(0, 1.3)
+    assert tag.pan_deg == pytest.approx(pan)
+
+
+def test_pan_tilt_off_issues_nothing() -> None:
+    h = Harness(BASE, centroid=(600.0, 40.0))
+    h.run(0.5)
+    assert not any(isinstance(a, (*PT_CMDS, PanTiltInquiry)) for _, a in h.actions)
