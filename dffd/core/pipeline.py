@@ -254,7 +254,7 @@ class Pipeline:
     def process(self, frame: Frame, tag: FrameTag) -> PipelineOutput:
         """Consume one frame and its tag."""
         measurement: Measurement | None = None
-        if tag.role != "burst" or (
+        if tag.role == "track" or (
             self._burst_id is not None and tag.burst is not None and tag.burst[0] != self._burst_id
         ):
             measurement = self._finish_burst()
