@@ -7,7 +7,9 @@ object runs live, in virtual time, and in the unit tests.
 Event-driven API (every ``t``/``now`` is in the frame source's monotonic seconds):
 
 - ``on_frame(index, t) -> FrameTag``: a frame exposed around mid-time ``t`` was delivered; the
-  tag says what the focus and pan/tilt were during the *whole* exposure ``[t − E/2, t + E/2]``.
+  tag says what the focus and pan/tilt were during the *whole* exposure ``[t − E/2, t + E/2]``:
+  ``burst`` (a claimed slot), ``track`` (stationary known focus, normally the tracking focus),
+  ``transit`` (the focus moved or may have, or the frame falls between a burst's slots).
 - ``on_focus_completed(move_id, t)`` / ``on_focus_failed(move_id, t)``: VISCA Completion (or an
   error/timeout) for a :class:`FocusMove`.
 - ``on_focus_position(t, counts)``: reply to a :class:`FocusInquiry`.
@@ -448,6 +450,10 @@ class Scheduler:
             slot = self._claim_for(t, counts)
             if slot is not None:
                 tag = FrameTag("burst", counts, pan, tilt, slot)
+            elif self._inside_burst(t):
+                # An unclaimed frame between a burst's slots (exposed whole at a burst setting):
+                # a ``track`` tag would end the burst early in the core, so centroid only.
+                tag = FrameTag("transit", None, pan, tilt)
             else:
                 tag = FrameTag("track", counts, pan, tilt)
         self._drop_missed_claims(t)
@@ -867,6 +873,17 @@ class Scheduler:
                     self._pending.remove(burst)
                 return (burst.burst_id, slot)
         return None
+
+    def _inside_burst(self, t: float) -> bool:
+        """``t`` lies after a burst's first claimed exposure and before its last one."""
+        tol = self._period / 2.0
+        for burst in self._pending:
+            if not burst.claims or t <= burst.claims[0] + tol:
+                continue
+            complete = len(burst.claims) == len(burst.order)
+            if not complete or t < burst.claims[-1] - tol:
+                return True
+        return False
 
     def _drop_missed_claims(self, t: float) -> None:
         tol = self._period / 2.0

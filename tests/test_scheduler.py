@@ -294,11 +294,13 @@ def test_tags_are_truthful_and_bursts_reach_the_rate_limit() -> None:
     # Tracking frames only at the tracking focus; transit frames exist (the lens does move).
     roles = h.sched.stats.frames
     assert roles["transit"] > 0
-    # Tracking frames are at the tracking focus, except the odd unclaimed frame exposed whole at a
-    # burst setting (tagged honestly with its counts).
-    track = [tag.focus_counts for _, _, tag in h.tags if tag.role == "track"]
-    assert set(track) <= set(PLAN)
-    assert track.count(5000) >= 0.9 * len(track)
+    # Tracking frames are at the tracking focus; an unclaimed frame between a burst's slots is
+    # transit (a track tag would make the core end the burst early).
+    assert all(tag.focus_counts == 5000 for _, _, tag in h.tags if tag.role == "track")
+    for slots in bursts.values():
+        indices = sorted(i for _, i in slots)
+        between = [tag for i, _, tag in h.tags if indices[0] < i < indices[-1]]
+        assert all(tag.role in ("burst", "transit") for tag in between)
     assert h.sched.achieved_rate_hz(h.now) == pytest.approx(h.achieved_hz(), rel=0.15)
 
 
@@ -462,10 +464,11 @@ def test_property_tags_truthful_and_rate_near_limit(
         snap_counts=min(40, spacing // 3),
     )
     plan = (5000 - spacing, 5000, 5000 + spacing)
+    limit = depth_rate_limit(cfg, spacing).depth_hz
     h = Harness(cfg, plan=plan, seed=seed)
-    h.run(4.0)
+    h.run(max(3.0, 6.0 / limit))  # at least ~5 complete bursts
     assert h.wrong == []
-    assert h.achieved_hz() >= 0.9 * depth_rate_limit(cfg, spacing).depth_hz
+    assert h.achieved_hz() >= 0.9 * limit
 
 
 # -- pan/tilt ----------------------------------------------------------------------------------
