@@ -68,10 +68,12 @@ replies: st.SearchStrategy[codec.Reply] = st.one_of(
     st.builds(codec.AddressSetReply, st.integers(1, 8)),
     st.just(codec.BroadcastEcho(codec.IFClearBroadcast().to_message())),
 )
+# Message bytes of every VISCA message we use are below 0x80 (nibbles and small codes); a byte
+# with the high bit set inside a packet can only be a header, so the reassembler restarts there.
 packets = st.builds(
     lambda header, body: bytes([header, *body, 0xFF]),
     st.integers(0x80, 0xFE),
-    st.lists(non_ff, min_size=1, max_size=14),
+    st.lists(st.integers(0x00, 0x7F), min_size=1, max_size=14),
 )
 
 # ---- requests -------------------------------------------------------------------------------
@@ -283,3 +285,10 @@ def test_reassembler_never_fails_and_emits_only_framed_packets(stream: bytes) ->
         assert codec.MIN_PACKET_LEN <= len(raw) <= codec.MAX_PACKET_LEN
         assert raw[-1] == 0xFF
     assert sum(map(len, out)) + reassembler.dropped_bytes + reassembler.pending == len(stream)
+
+
+def test_reassembler_restarts_at_a_header_when_a_terminator_was_lost() -> None:
+    reassembler = codec.Reassembler()
+    # "90 41" lost its FF on the wire; the Completion that follows must still come out whole.
+    assert reassembler.feed(b"\x90\x41\x90\x51\xff") == [b"\x90\x51\xff"]
+    assert reassembler.dropped_bytes == 2

@@ -31,6 +31,7 @@ class _Segment:
     start: float
     velocity: float  # units per second, signed
     t_stop: float  # when the motion ends (math.inf while driving without a target)
+    end: float  # exact position once stopped, so a finished move lands on its target
 
 
 class Axis:
@@ -43,12 +44,14 @@ class Axis:
         self.low = low
         self.high = high
         self._segments: deque[_Segment] = deque(maxlen=HISTORY_SEGMENTS)
-        self._segments.append(_Segment(t, position, 0.0, t))
+        self._segments.append(_Segment(t, position, 0.0, t, position))
 
     def position(self, t: float) -> float:
         """Position at time ``t`` (clamped to the limits)."""
         seg = self._segment_at(t)
-        dt = min(t, seg.t_stop) - seg.t_start
+        if t >= seg.t_stop:
+            return seg.end
+        dt = t - seg.t_start
         return min(self.high, max(self.low, seg.start + seg.velocity * max(0.0, dt)))
 
     def moving(self, t: float) -> bool:
@@ -75,7 +78,7 @@ class Axis:
         distance = target - here
         duration = abs(distance) / speed
         velocity = math.copysign(speed, distance) if distance else 0.0
-        self._segments.append(_Segment(t, here, velocity, t + duration))
+        self._segments.append(_Segment(t, here, velocity, t + duration, target))
         return t + duration
 
     def drive(self, direction: int, speed: float, t: float) -> None:
@@ -85,15 +88,17 @@ class Axis:
         here = self.position(t)
         limit = self.high if direction > 0 else self.low
         t_stop = t + abs(limit - here) / speed if speed > 0 else t
-        self._segments.append(_Segment(t, here, direction * speed, t_stop))
+        self._segments.append(_Segment(t, here, direction * speed, t_stop, limit))
 
     def stop(self, t: float) -> None:
         """Stop at time ``t`` where the motor is then."""
-        self._segments.append(_Segment(t, self.position(t), 0.0, t))
+        here = self.position(t)
+        self._segments.append(_Segment(t, here, 0.0, t, here))
 
     def jump(self, position: float, t: float) -> None:
         """Set the position instantly (power-up, reset)."""
-        self._segments.append(_Segment(t, min(self.high, max(self.low, position)), 0.0, t))
+        here = min(self.high, max(self.low, position))
+        self._segments.append(_Segment(t, here, 0.0, t, here))
 
     def _segment_at(self, t: float) -> _Segment:
         for seg in reversed(self._segments):

@@ -128,8 +128,9 @@ class Reassembler:
     """Turn arbitrary byte chunks into packets; resynchronise on FF, drop garbage, cap the buffer.
 
     A packet starts at a byte with the high bit set and ends at the next ``FF``. Bytes before a
-    header, runs without a terminator longer than 16 bytes, and terminated runs too short to be a
-    packet are dropped and counted in :attr:`dropped_bytes`.
+    header, a partial packet interrupted by a new header, runs without a terminator longer than
+    16 bytes, and terminated runs too short to be a packet are dropped and counted in
+    :attr:`dropped_bytes`.
     """
 
     def __init__(self, max_packet_len: int = MAX_PACKET_LEN) -> None:
@@ -153,6 +154,12 @@ class Reassembler:
                     continue
                 self._buffer.append(byte)
                 continue
+            if byte & 0x80 and byte != TERMINATOR:
+                # A header inside a packet: the terminator of the previous one was lost (noise).
+                # Data bytes are nibbles or small codes below 0x80 in every message we use, so
+                # restart here rather than merge two packets into one.
+                self.dropped_bytes += len(self._buffer)
+                self._buffer.clear()
             self._buffer.append(byte)
             if byte == TERMINATOR:
                 if len(self._buffer) >= MIN_PACKET_LEN:
