@@ -34,7 +34,7 @@ class TrackerConfig:
 
     n_normals: int = 64  # Nl in (2)
     search_px: int = 12  # half-length of each normal line (motion + blur of a burst)
-    presmooth_sigma_px: float = 1.0  # Gaussian before the gradient: adds to σ0, (2) stays a parabola
+    presmooth_sigma_px: float = 1.0  # smoothing before ∇: adds to σ0, (2) stays a parabola
     min_rel_peak: float = 0.2  # a normal's peak must reach this fraction of the median peak
     min_abs_grad: float = 3.0  # gray levels / px: below this a peak is noise
     min_inlier_fraction: float = 0.5  # fewer inliers than this: the frame does not see the target

@@ -147,12 +147,12 @@ class CF2:
 
     @property
     def beta(self) -> float | None:
-        """Estimated bias of ψ_m (m/s)."""
-        return None if self.x is None else float(self.x[1])
+        """Estimated bias β of ψ_m (m/s): in steady state x̂2 → −β, so β̂ = −x̂2."""
+        return None if self.x is None else -float(self.x[1])
 
     def reset(self, z: float, beta: float = 0.0) -> None:
-        """Initialise the state."""
-        self.x = np.array([z, beta])
+        """Initialise the state (``beta`` is the bias of ψ_m)."""
+        self.x = np.array([z, -beta])
 
     def step(self, dt: float, y: float, psi: float, lam: float = 0.0) -> float:
         """Advance by ``dt``: ``ψ_m = psi`` held, ``z_m = y e^{λτ}`` (``y`` at the step start)."""

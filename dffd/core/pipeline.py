@@ -59,7 +59,9 @@ class PipelineConfig:
     known_size_m: float | None = None  # enables CF1
     settle_s: float = 5.0  # settling time: steady-state statistics start after it
     burst_size: int = 3  # frames of a complete burst
-    magnification: Literal["thin_lens", "pinhole"] = "thin_lens"  # image distance v0 or f
+    # image scale: "pinhole" f/p (DESIGN (3), the reference simulator) or "thin_lens" v0/p
+    # (chief ray; lenses whose image size "breathes" with focus)
+    magnification: Literal["thin_lens", "pinhole"] = "pinhole"
     transport_measurements: bool = True
     # CF1 / CF2 (Lemma 1 from the noise densities)
     cf1_k: float = 1.0  # rad/s

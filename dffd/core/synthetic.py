@@ -3,7 +3,7 @@
 This is a stand-in for the optics simulator (``drivers/sim``), deliberately *not* the estimator's
 model: the defocus PSF here is a pillbox (uniform disc) of the geometric blur-circle radius,
 convolved with a small Gaussian residual blur, whereas the estimator assumes Gaussian spreads
-adding in quadrature. Magnification follows the thin lens (image size ``v0 R / z``).
+adding in quadrature. Image scale ``f/p`` (pinhole) or ``v0/p`` with ``breathing``.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ class DiscScene:
     residual_blur_px: float = 0.6
     noise_std: float = 2.0
     f_number: float = 2.9
+    breathing: bool = False  # image scale v0/p (thin-lens chief ray) instead of f/p (pinhole)
 
 
 def render_disc(
@@ -76,7 +77,8 @@ def render_scene(
     x, y, z = position_m
     v0 = lens.v_from_counts(focus_counts)
     v = lens.v_from_depth(z)
-    mag = v0 / (z * MM_PER_M) / lens.pixel_pitch_mm  # px per mm in the target plane
+    scale = v0 if scene.breathing else lens.focal_length_mm
+    mag = scale / (z * MM_PER_M) / lens.pixel_pitch_mm  # px per mm in the target plane
     cx = scene.width / 2 + x * MM_PER_M * mag
     cy = scene.height / 2 + y * MM_PER_M * mag
     radius = scene.radius_m * MM_PER_M * mag

@@ -1,0 +1,294 @@
+"""``dffd replay RUN --out EST.jsonl [--summary S.json] [--plot P.png]`` (DESIGN §7).
+
+Runs the estimation core on a recording: one JSON line per tracking frame; with ``truth.csv``,
+an error table per estimator (bias, std, RMS, steady-state std after the settling time, p95 of
+|error|, in metres) is printed and written, and a plot of truth, ``z_m``, every estimator and the
+errors can be drawn.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dffd.core.lens import Lens, LensError
+from dffd.core.pipeline import ESTIMATORS, Estimate, Pipeline, PipelineConfig
+from dffd.recording import RecordingError, RecordingReader, Truth
+
+logger = logging.getLogger(__name__)
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+SCHEMA = 1
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``dffd replay``."""
+    parser.add_argument("run", type=Path, help="recording directory (meta.json, frames.csv, …)")
+    parser.add_argument("--out", type=Path, required=True, help="estimates, one JSON per line")
+    parser.add_argument("--summary", type=Path, help="write the error summary (needs truth.csv)")
+    parser.add_argument("--plot", type=Path, help="write a PNG plot of depths and errors")
+    parser.add_argument("--settle", type=float, default=None,
+                        help="settling time (s) before steady-state statistics (default 5)")
+    parser.add_argument("--known-size", type=float, default=None, metavar="M",
+                        help="target size in metres (enables CF1)")
+    parser.add_argument("--best", choices=ESTIMATORS, default=None,
+                        help="estimator reported as best (default lpv)")
+    parser.add_argument("--roi", default=None, metavar="X,Y,W,H",
+                        help="acquire the target inside this ROI instead of automatically")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Replay; exit 0 ok, 1 unreadable recording or output, 2 bad arguments."""
+    try:
+        roi = _parse_roi(args.roi) if args.roi else None
+    except ValueError as exc:
+        print(f"dffd replay: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.settle is not None and args.settle < 0:
+        print("dffd replay: --settle must be >= 0", file=sys.stderr)
+        return EXIT_USAGE
+    if args.known_size is not None and args.known_size <= 0:
+        print("dffd replay: --known-size must be > 0", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        reader = RecordingReader(args.run)
+        lens = Lens.from_meta(reader.meta["lens"], source=f"{args.run}/meta.json lens")
+    except (RecordingError, LensError) as exc:
+        print(f"dffd replay: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    config = PipelineConfig()
+    if args.known_size is not None:
+        config = replace(config, known_size_m=args.known_size)
+    if args.best is not None:
+        config = replace(config, best=args.best)
+    settle = config.settle_s if args.settle is None else args.settle
+    try:
+        result = replay(reader, lens, config, roi=roi)
+        _write_jsonl(args.out, result.lines)
+    except (RecordingError, OSError) as exc:
+        print(f"dffd replay: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    t0 = reader.records[0].t_s if reader.records else 0.0
+    print(f"{len(result.lines)} estimates from {len(reader)} frames -> {args.out}; "
+          f"bursts accepted {result.accepted}, rejected {result.rejected}")
+    if reader.truth is None:
+        if args.summary is not None:
+            print("dffd replay: no truth.csv in the recording; no summary written",
+                  file=sys.stderr)
+    else:
+        summary = summarize(result.lines, reader.truth, settle, t0,
+                            bursts=(result.accepted, result.rejected))
+        print(format_table(summary))
+        if args.summary is not None:
+            try:
+                args.summary.write_text(json.dumps(summary, indent=2) + "\n", "utf-8")
+            except OSError as exc:
+                print(f"dffd replay: cannot write {args.summary}: {exc}", file=sys.stderr)
+                return EXIT_FAILURE
+    if args.plot is not None:
+        try:
+            plot(result.lines, reader.truth, args.plot)
+        except OSError as exc:
+            print(f"dffd replay: cannot write {args.plot}: {exc}", file=sys.stderr)
+            return EXIT_FAILURE
+    return EXIT_OK
+
+
+class ReplayResult:
+    """Estimate lines and burst counts of one replay."""
+
+    def __init__(self) -> None:
+        self.lines: list[dict[str, Any]] = []
+        self.accepted = 0
+        self.rejected = 0
+
+
+def replay(
+    frames: Iterable[Any],
+    lens: Lens,
+    config: PipelineConfig,
+    roi: tuple[int, int, int, int] | None = None,
+) -> ReplayResult:
+    """Run a :class:`Pipeline` over ``(Frame, FrameTag)`` pairs; collect JSON-ready lines."""
+    pipeline = Pipeline(config, lens)
+    if roi is not None:
+        pipeline.acquire_roi(*roi)
+    result = ReplayResult()
+    for frame, tag in frames:
+        out = pipeline.process(frame, tag)
+        if out.measurement is not None:
+            if out.measurement.accepted:
+                result.accepted += 1
+            else:
+                result.rejected += 1
+        if out.estimate is not None:
+            result.lines.append(estimate_line(out.estimate))
+    return result
+
+
+def estimate_line(e: Estimate) -> dict[str, Any]:
+    """One EST.jsonl object (DESIGN §7 fields first, then the rest of the estimate)."""
+    return {
+        "t_s": e.t,
+        "depth_m": {k: e.depth_m.get(k) for k in ESTIMATORS},
+        "best": e.best,
+        "r_px": e.r_px,
+        "size_m": e.size_m,
+        "frame": e.frame_index,
+        "state": e.state,
+        "z_m": e.z_m,
+        "sigma_m": e.sigma_m,
+        "measured_t_s": e.measured_t,
+        "beta_m_s": e.beta_m_s,
+        "rho": e.rho,
+        "centroid_px": list(e.centroid_px),
+        "position_m": None if e.position_m is None else list(e.position_m),
+        "position_world_m": None if e.position_world_m is None else list(e.position_world_m),
+        "pan_deg": e.pan_deg,
+        "tilt_deg": e.tilt_deg,
+        "focus_counts": e.focus_counts,
+    }
+
+
+def error_stats(
+    t: Sequence[float], err: Sequence[float], settle_until: float
+) -> dict[str, float | int | None]:
+    """bias, std, RMS, steady-state std (t ≥ settle_until) and p95 |error| in metres."""
+    tt = np.asarray(t, dtype=np.float64)
+    e = np.asarray(err, dtype=np.float64)
+    ok = np.isfinite(e)
+    tt, e = tt[ok], e[ok]
+    if len(e) == 0:
+        return {"n": 0, "bias_m": None, "std_m": None, "rms_m": None, "ss_std_m": None,
+                "p95_abs_m": None}
+    ss = e[tt >= settle_until]
+    return {
+        "n": len(e),
+        "bias_m": float(e.mean()),
+        "std_m": float(e.std()),
+        "rms_m": float(np.sqrt(np.mean(e * e))),
+        "ss_std_m": float(ss.std()) if len(ss) > 1 else None,
+        "p95_abs_m": float(np.percentile(np.abs(e), 95)),
+    }
+
+
+def summarize(
+    lines: Sequence[dict[str, Any]],
+    truth: Truth,
+    settle_s: float,
+    t_start: float,
+    bursts: tuple[int, int],
+) -> dict[str, Any]:
+    """The SUMMARY.json object of DESIGN §7 (``measured`` scored at each burst's mid-time)."""
+    estimators: dict[str, Any] = {}
+    for name in ESTIMATORS:
+        ts: list[float] = []
+        vals: list[float] = []
+        for line in lines:
+            value = line["depth_m"].get(name)
+            if value is None:
+                continue
+            t = line["measured_t_s"] if name == "measured" and line.get("measured_t_s") else (
+                line["t_s"]
+            )
+            ts.append(float(t))
+            vals.append(float(value))
+        if not ts:
+            continue
+        err = np.asarray(vals) - truth.z_at(ts)
+        estimators[name] = error_stats(ts, err.tolist(), t_start + settle_s)
+    return {
+        "schema": SCHEMA,
+        "settle_s": settle_s,
+        "estimators": estimators,
+        "bursts": {"accepted": bursts[0], "rejected": bursts[1]},
+    }
+
+
+def format_table(summary: dict[str, Any]) -> str:
+    """Human-readable error table (millimetres)."""
+    head = f"{'estimator':<10}{'n':>6}{'bias':>9}{'std':>9}{'rms':>9}{'ss std':>9}{'p95':>9}"
+    rows = [head + "   (mm)"]
+    for name, st in summary["estimators"].items():
+        def mm(v: float | None) -> str:
+            return "-" if v is None or not math.isfinite(v) else f"{1000 * v:.1f}"
+        rows.append(f"{name:<10}{st['n']:>6}{mm(st['bias_m']):>9}{mm(st['std_m']):>9}"
+                    f"{mm(st['rms_m']):>9}{mm(st['ss_std_m']):>9}{mm(st['p95_abs_m']):>9}")
+    b = summary["bursts"]
+    rows.append(f"bursts accepted {b['accepted']}, rejected {b['rejected']}; "
+                f"steady state after {summary['settle_s']} s")
+    return "\n".join(rows)
+
+
+def plot(lines: Sequence[dict[str, Any]], truth: Truth | None, path: Path) -> None:
+    """Depth of truth, z_m and every estimator, and their errors, to a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_z, ax_e) = plt.subplots(2, 1, sharex=True, figsize=(10, 7))
+    if truth is not None:
+        ax_z.plot(truth.t_s, truth.z_m, color="tab:blue", lw=1.5, label="truth")
+    colours = {"measured": "tab:red", "cf1": "gold", "cf2": "tab:green", "lpv": "black",
+               "kf": "tab:purple"}
+    for name in ESTIMATORS:
+        pts = [(ln["measured_t_s"] if name == "measured" else ln["t_s"], ln["depth_m"][name])
+               for ln in lines if ln["depth_m"].get(name) is not None]
+        if not pts:
+            continue
+        t, z = (np.asarray(v, dtype=np.float64) for v in zip(*pts, strict=True))
+        style: dict[str, Any] = {"ls": "none", "marker": ".", "ms": 3} if name == "measured" else {
+            "lw": 1.0}
+        ax_z.plot(t, z, color=colours[name], label=name, **style)
+        if truth is not None:
+            ax_e.plot(t, 1000 * (z - truth.z_at(t)), color=colours[name], label=name, **style)
+    ax_z.set_ylabel("depth (m)")
+    ax_z.legend(loc="best", fontsize="small")
+    ax_e.set_ylabel("error (mm)")
+    ax_e.set_xlabel("t (s)")
+    ax_e.axhline(0.0, color="grey", lw=0.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _write_jsonl(path: Path, lines: Sequence[dict[str, Any]]) -> None:
+    with path.open("w", encoding="utf-8") as fh:
+        for line in lines:
+            fh.write(json.dumps(_finite(line), allow_nan=False) + "\n")
+
+
+def _finite(value: Any) -> Any:
+    """NaN/inf become null: JSON has no such numbers."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _parse_roi(text: str) -> tuple[int, int, int, int]:
+    parts = text.split(",")
+    if len(parts) != 4:
+        raise ValueError(f"--roi needs X,Y,W,H (got {text!r})")
+    try:
+        x, y, w, h = (int(p) for p in parts)
+    except ValueError as exc:
+        raise ValueError(f"--roi needs four integers X,Y,W,H (got {text!r})") from exc
+    if w <= 0 or h <= 0:
+        raise ValueError("--roi width and height must be > 0")
+    return x, y, w, h
