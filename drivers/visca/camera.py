@@ -191,12 +191,14 @@ class Camera:
         profile: CameraProfile = EVI_D100,
         *,
         retries: int = DEFAULT_RETRIES,
+        move_timeout_margin_s: float = MOVE_TIMEOUT_MARGIN_S,
     ) -> None:
         check_range("camera address", address, 1, 7)
         self.link = link
         self.address = address
         self.profile = profile
         self.retries = retries
+        self.move_timeout_margin_s = move_timeout_margin_s
         self.version_info: Version | None = None
 
     # ---- set-up -------------------------------------------------------------------------------
@@ -206,7 +208,7 @@ class Camera:
 
         Registers itself to run again after a reconnect or Network Change.
         """
-        chain = await self.link.ensure_addressed()
+        chain = await self._retry(self.link.ensure_addressed)
         if chain and self.address > chain:
             raise ViscaError(
                 f"no camera at address {self.address}: Address Set found {chain} camera(s) on "
@@ -295,7 +297,7 @@ class Camera:
     async def zoom_direct(self, counts: int) -> None:
         """Move the zoom to ``counts``; return once it has stopped."""
         request = ZoomDirect(_check_int("counts", counts, self.profile.zoom_range))
-        timeout = self.profile.zoom_full_travel_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+        timeout = self.profile.zoom_full_travel_s * MOVE_TIMEOUT_FACTOR + self.move_timeout_margin_s
         await self._command(request, timeout)
 
     async def zoom_position(self) -> int:
@@ -391,7 +393,7 @@ class Camera:
         span = max(
             p.pan_range_deg[1] - p.pan_range_deg[0], p.tilt_range_deg[1] - p.tilt_range_deg[0]
         )
-        timeout = span / p.home_speed_deg_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+        timeout = span / p.home_speed_deg_s * MOVE_TIMEOUT_FACTOR + self.move_timeout_margin_s
         await self._command(PanTiltHome(), timeout)
 
     async def cancel(self, socket: int) -> bool:
@@ -417,7 +419,7 @@ class Camera:
                 logger.debug("camera %d: retrying after %s", self.address, exc)
 
     def _focus_timeout_s(self) -> float:
-        return self.profile.focus_full_travel_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+        return self.profile.focus_full_travel_s * MOVE_TIMEOUT_FACTOR + self.move_timeout_margin_s
 
     def _pan_tilt_move(
         self,
@@ -442,13 +444,17 @@ class Camera:
                 * p.tilt_counts_per_deg
             )
         pan_code = p.pan_speed_code(speed, "speed")
-        tilt_code = p.tilt_speed_code(speed if tilt_speed is None else tilt_speed, "tilt_speed")
+        if tilt_speed is None and isinstance(speed, SpeedCode):
+            # One pan speed code for both axes: tilt runs at its nearest (capped) code.
+            tilt_code = min(pan_code, p.max_tilt_speed_code)
+        else:
+            tilt_code = p.tilt_speed_code(speed if tilt_speed is None else tilt_speed, "tilt_speed")
         # Worst case travel: the whole range (the start position is not known without asking).
         travel_s = max(
             pan_span / p.pan_speeds_deg_s[pan_code - 1],
             tilt_span / p.tilt_speeds_deg_s[tilt_code - 1],
         )
-        timeout = travel_s * MOVE_TIMEOUT_FACTOR + MOVE_TIMEOUT_MARGIN_S
+        timeout = travel_s * MOVE_TIMEOUT_FACTOR + self.move_timeout_margin_s
         return kind(pan_code, tilt_code, pan, tilt), timeout
 
     async def _wait_focus_settled(self, target: int) -> None:
