@@ -1,0 +1,147 @@
+"""Render-time benchmark of the simulated camera (issue 3: ≤ 5 ms per 640×480 frame).
+
+    python -m hil.bench_render [--frames N] [--config config/sim-camera.toml] [--out FILE]
+
+Renders the reference camera in lock-step virtual time over cases that span the work the
+renderer does: a small focused target (10 m), a large one (1.5 m), a heavily defocused one
+(large PSF), a moving target with motion blur, and frames exposed while the focus motor turns.
+Prints milliseconds per frame (mean, p50, p95, max) per case and overall; ``--out`` writes the
+same figures as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from drivers.sim.config import (
+    SimCameraConfig,
+    TargetConfig,
+    TrajectoryConfig,
+    WorldConfig,
+    load_sim_camera_config,
+)
+from drivers.sim.source import SimFrameSource, camera_state_for
+from drivers.sim.state import CameraState
+from drivers.sim.world import World
+
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "sim-camera.toml"
+BUDGET_MS = 5.0  # issue 3
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+Setup = Callable[[SimFrameSource, CameraState, _Clock], None]
+
+
+def _focus(z: float) -> Setup:
+    def setup(source: SimFrameSource, state: CameraState, clock: _Clock) -> None:
+        state.focus.jump(source.optics.focus_counts_for_depth(z), clock.t)
+
+    return setup
+
+
+def _far(source: SimFrameSource, state: CameraState, clock: _Clock) -> None:
+    state.focus.jump(source.optics.lens.focus_far_counts, clock.t)
+
+
+def _sweeping(source: SimFrameSource, state: CameraState, clock: _Clock) -> None:
+    state.focus.move_to(0x8000, speed=2000.0, t=clock.t)  # turns throughout the run
+
+
+def _static(z: float) -> WorldConfig:
+    return WorldConfig(trajectory=TrajectoryConfig(kind="static", position_m=(0.0, 0.0, z)))
+
+
+CASES: dict[str, tuple[WorldConfig, Setup]] = {
+    "focused-10m": (_static(10.0), _focus(10.0)),
+    "focused-1.5m": (_static(1.5), _focus(1.5)),
+    "defocused-1.5m": (_static(1.5), _far),  # blur radius ≈ 22 px
+    "moving-2m/s-3m": (
+        WorldConfig(trajectory=TrajectoryConfig(
+            kind="linear", position_m=(-0.3, 0.0, 3.0), end_m=(0.3, 0.0, 3.0), speed_mps=2.0)),
+        _focus(3.0),
+    ),
+    "focus-transit-5m": (_static(5.0), _sweeping),
+    "textured-3m": (
+        WorldConfig(target=TargetConfig(shape="textured"),
+                    trajectory=TrajectoryConfig(kind="static", position_m=(0.0, 0.0, 3.0))),
+        _focus(3.0),
+    ),
+}
+
+
+def run_case(config: SimCameraConfig, world: WorldConfig, setup: Setup, frames: int) -> list[float]:
+    """Render ``frames`` frames in lock-step; return per-frame wall times in ms."""
+    clock = _Clock()
+    state = camera_state_for(config, clock=clock)
+    source = SimFrameSource.from_config(config, state, World.from_config(world))
+    setup(source, state, clock)
+    source.render_frame(0)  # warm the PSF cache as a running camera would
+    times = []
+    for index in range(1, frames + 1):
+        clock.t = source.delivery_time(index)
+        start = time.perf_counter()
+        source.render_frame(index)
+        times.append(1e3 * (time.perf_counter() - start))
+    return times
+
+
+def summarise(times: Sequence[float]) -> dict[str, float]:
+    """Mean, median, 95th percentile and maximum."""
+    ordered = sorted(times)
+    return {
+        "mean_ms": statistics.fmean(ordered),
+        "p50_ms": ordered[len(ordered) // 2],
+        "p95_ms": ordered[min(len(ordered) - 1, int(0.95 * len(ordered)))],
+        "max_ms": ordered[-1],
+        "frames": float(len(ordered)),
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the benchmark; exit 0 when the mean over all cases is within the budget."""
+    parser = argparse.ArgumentParser(prog="python -m hil.bench_render", description=__doc__)
+    parser.add_argument("--frames", type=int, default=300, help="frames per case (default 300)")
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
+    parser.add_argument("--out", type=Path, help="write the figures as JSON")
+    args = parser.parse_args(argv)
+    config = load_sim_camera_config(args.config)
+    results: dict[str, dict[str, float]] = {}
+    all_times: list[float] = []
+    for name, (world, setup) in CASES.items():
+        times = run_case(config, world, setup, args.frames)
+        all_times += times
+        results[name] = summarise(times)
+        s = results[name]
+        print(f"{name:18s} mean {s['mean_ms']:5.2f}  p50 {s['p50_ms']:5.2f}  "
+              f"p95 {s['p95_ms']:5.2f}  max {s['max_ms']:6.2f} ms/frame")
+    overall = summarise(all_times)
+    print(f"{'all':18s} mean {overall['mean_ms']:5.2f}  p50 {overall['p50_ms']:5.2f}  "
+          f"p95 {overall['p95_ms']:5.2f}  max {overall['max_ms']:6.2f} ms/frame "
+          f"(budget {BUDGET_MS} ms, {config.sensor.width_px}×{config.sensor.height_px})")
+    if args.out:
+        report = {
+            "schema": 1,
+            "frame_size": [config.sensor.width_px, config.sensor.height_px],
+            "budget_ms": BUDGET_MS,
+            "overall": overall,
+            "cases": results,
+        }
+        args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    return 0 if overall["mean_ms"] <= BUDGET_MS else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
