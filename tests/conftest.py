@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import getpass
 import shutil
 import socket
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -44,7 +45,14 @@ def wait_for_port(host: str, port: int, timeout_s: float) -> None:
 class Mosquitto:
     """A mosquitto process on ``host:port`` that a test can stop and start again (same port)."""
 
-    def __init__(self, binary: str, workdir: Path, port: int, host: str = "127.0.0.1") -> None:
+    def __init__(
+        self,
+        binary: str,
+        workdir: Path,
+        port: int,
+        host: str = "127.0.0.1",
+        listener_options: str = "allow_anonymous true\n",
+    ) -> None:
         self.binary = binary
         self.host = host
         self.port = port
@@ -52,8 +60,11 @@ class Mosquitto:
         self.log_file = workdir / "mosquitto.log"
         self.config_file.write_text(
             f"listener {port} {host}\n"
-            "allow_anonymous true\n"
+            f"{listener_options}"
             "persistence false\n"
+            # mosquitto started as root drops to user 'mosquitto', which cannot read files in
+            # the test's private tmp directory; stay the invoking user instead.
+            f"user {getpass.getuser()}\n"
             "set_tcp_nodelay true\n"
             "log_dest stderr\n"
             "log_type error\n"
@@ -108,17 +119,33 @@ def _mosquitto_binary() -> str | None:
     return next((c for c in MOSQUITTO_CANDIDATES if Path(c).is_file()), None)
 
 
+MosquittoFactory = Callable[..., Mosquitto]
+
+
 @pytest.fixture
-def mosquitto(tmp_path: Path) -> Iterator[Mosquitto]:
-    """A running mosquitto on a free 127.0.0.1 port (anonymous, no persistence)."""
+def mosquitto_factory(tmp_path: Path) -> Iterator[MosquittoFactory]:
+    """``factory(listener_options="...")`` starts a mosquitto on a free port; all stopped after."""
     binary = _mosquitto_binary()
     if binary is None:
         pytest.skip("mosquitto is not installed (Debian package 'mosquitto'; `make system-deps`)")
-    workdir = tmp_path / "mosquitto"
-    workdir.mkdir()
-    broker = Mosquitto(binary, workdir, free_port())
-    broker.start()
+    brokers: list[Mosquitto] = []
+
+    def factory(**options: str) -> Mosquitto:
+        workdir = tmp_path / f"mosquitto{len(brokers)}"
+        workdir.mkdir()
+        broker = Mosquitto(binary, workdir, free_port(), **options)
+        brokers.append(broker)
+        broker.start()
+        return broker
+
     try:
-        yield broker
+        yield factory
     finally:
-        broker.stop()
+        for broker in brokers:
+            broker.stop()
+
+
+@pytest.fixture
+def mosquitto(mosquitto_factory: MosquittoFactory) -> Mosquitto:
+    """A running mosquitto on a free 127.0.0.1 port (anonymous, no persistence)."""
+    return mosquitto_factory()

@@ -109,6 +109,7 @@ class PublisherSettings:
     queue_max_messages: int = 1_000
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 30.0
+    connect_timeout_s: float = CONNECT_TIMEOUT_S
 
     @classmethod
     def from_config(cls, config: MqttConfig) -> PublisherSettings:
@@ -375,7 +376,9 @@ class Publisher:
             ),
             keepalive=s.keepalive_s,
             tls_params=tls,
-            timeout=CONNECT_TIMEOUT_S,
+            # Also the bound on a connection the broker drops before CONNACK (plain MQTT to a TLS
+            # port): aiomqtt only notices that when this expires.
+            timeout=s.connect_timeout_s,
             logger=_LOGGER.getChild("paho"),
             # Small messages at frame rate: without TCP_NODELAY, Nagle + the broker's delayed
             # ACK hold each write up to ~40 ms (measured 80 ms command round trips).
