@@ -304,7 +304,7 @@ async def test_link_resynchronises_after_faults(spec: str) -> None:
         camera,
     ):
         server.faults.spec = FaultSpec.parse(spec)
-        await asyncio.wait_for(_exercise(camera, rng, 25), 60)
+        await asyncio.wait_for(_exercise(camera, rng, 15), 60)
         server.faults.spec = FaultSpec()  # the cable is clean again
         await asyncio.sleep(0)
         # Stragglers from the faulty period are dropped, never matched: later commands succeed.

@@ -883,7 +883,9 @@ class ViscaLink:
 
     def _on_network_change(self, sender: int) -> None:
         self._network_changes += 1
-        logger.warning(
+        # Before the chain was first addressed this is just a camera powering up as we connect.
+        logger.log(
+            logging.WARNING if self._addressed else logging.INFO,
             "camera %d on %s reported a Network Change (power cycle or re-cabling): "
             "re-addressing the chain",
             sender,
