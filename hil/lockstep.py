@@ -306,8 +306,11 @@ class _Runner:
 
     def _feedback(self, out: PipelineOutput, tag: FrameTag) -> _Feedback:
         obs = out.observation
-        centroid = obs.centroid if obs is not None and obs.ok else None
-        if self.pipeline.state != "tracking":
+        # The scheduler stops pan/tilt on None ("lost"): a blurred frame the tracker did not
+        # trust still carries its (translation-tracked) centroid while the core is tracking.
+        tracking = self.pipeline.state == "tracking"
+        centroid = obs.centroid if obs is not None and tracking else None
+        if not tracking:
             return _Feedback(None, None, centroid)
         pred = self.pipeline.predicted_depth()
         here = self.scheduler.focus_counts

@@ -31,30 +31,28 @@ SAMPLE_BURSTS = 6
 GIT_TIMEOUT_S = 5.0
 
 
-def summary_stats(t: FloatArray, err: FloatArray, settle_t: FloatArray) -> dict[str, Any]:
-    """Error summary of DESIGN §7 over samples ``err`` at ``t``; steady state where t ≥ settle_t.
+def summary_stats(t: FloatArray, err: FloatArray, settle_t: float) -> dict[str, Any]:
+    """Error summary of DESIGN §7 over samples ``err`` at ``t`` (steady state: t ≥ settle_t).
 
-    ``settle_t`` is per sample (pooled sessions each settle from their own start).
+    The §7 block comes from ``dffd.replay.error_stats`` (one definition for replay and bench);
+    the bench adds the steady-state bias, RMS and p95.
     """
+    from dffd.replay import error_stats
+
+    out: dict[str, Any] = dict(error_stats(t.tolist(), err.tolist(), settle_t))
     ok = np.isfinite(err) & np.isfinite(t)
-    e = err[ok]
-    ss = e[t[ok] >= settle_t[ok]]
-    out: dict[str, Any] = {"n": int(e.size)}
-    out.update(_moments(e, ""))
+    ss = err[ok][t[ok] >= settle_t]
     out["ss_n"] = int(ss.size)
-    ssm = _moments(ss, "")
+    ssm = _moments(ss)
     out["ss_bias_m"] = ssm["bias_m"]
-    out["ss_std_m"] = ssm["std_m"]
     out["ss_rms_m"] = ssm["rms_m"]
     out["ss_p95_abs_m"] = ssm["p95_abs_m"]
-    # canonical key order of the §7 block first
-    keys = ("n", "bias_m", "std_m", "rms_m", "ss_std_m", "p95_abs_m")
-    return {k: out[k] for k in keys} | {k: v for k, v in out.items() if k not in keys}
+    return out
 
 
 def series_summary(results: Sequence[RunResult], pick: str, name: str) -> dict[str, Any] | None:
     """Pooled summary of estimate (``pick="estimates"``) or baseline series ``name``."""
-    ts, errs, settles = [], [], []
+    ts, errs = [], []
     for res in results:
         table = res.estimates if pick == "estimates" else res.baselines
         series = table.get(name)
@@ -63,10 +61,10 @@ def series_summary(results: Sequence[RunResult], pick: str, name: str) -> dict[s
         t, v, truth = series.arrays()
         ts.append(t - res.t_start)
         errs.append(v - truth)
-        settles.append(np.full(t.shape, res.settle_s))
     if not ts:
         return None
-    return summary_stats(np.concatenate(ts), np.concatenate(errs), np.concatenate(settles))
+    # Sessions are pooled on their own clocks (t relative to each session's start).
+    return summary_stats(np.concatenate(ts), np.concatenate(errs), results[0].settle_s)
 
 
 def build_report(
@@ -419,7 +417,7 @@ def _per_case(results: Sequence[RunResult]) -> dict[str, Any]:
     return out
 
 
-def _moments(e: FloatArray, _prefix: str) -> dict[str, float | None]:
+def _moments(e: FloatArray) -> dict[str, float | None]:
     if e.size == 0:
         return {"bias_m": None, "std_m": None, "rms_m": None, "p95_abs_m": None}
     return {

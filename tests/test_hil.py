@@ -1,0 +1,181 @@
+"""The HIL bench: scenarios, a short lock-step run end to end, report fields, baselines, compare."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil.baselines import known_size_depth, square_side_for_size, sweep_depth
+from hil.cli import main as hil_main
+from hil.compare import compare_reports
+from hil.compare import main as compare_main
+from hil.scenario import SCENARIO_NAMES, ScenarioError, available_scenarios, load_scenario
+
+# A few seconds of a static target at 2 m, where acquisition and the first wide burst work: the
+# whole chain (sim + VISCA device + scheduler + core + every baseline pass) runs in lock-step.
+SHORT_SCENARIO = """
+name = "short-static"
+description = "test: disc at 2 m, a few seconds"
+duration_s = 6.0
+settle_s = 3.0
+seeds = [5]
+
+[target]
+shape = "disc"
+size_m = 0.03576
+known_size_m = 0.03576
+
+[trajectory]
+kind = "static"
+position_m = [0.0, 0.0, 2.0]
+
+[baselines]
+full_sweep_settings = 8
+max_pass_s = 6.0
+
+[thresholds]
+ss_std_max_m = 0.0377
+ss_std_vs_measured_max = 0.5
+sweep_rate_ratio_min = 5.0
+"""
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    base = tmp_path_factory.mktemp("hil")
+    scenario = base / "short-static.toml"
+    scenario.write_text(SHORT_SCENARIO, encoding="utf-8")
+    out = base / "out"
+    code = hil_main(
+        ["run", str(scenario), "--fast", "--out", str(out), "--no-progress", "--record"]
+    )
+    assert code == 0
+    report = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    return out, report
+
+
+def test_every_named_scenario_loads() -> None:
+    assert set(SCENARIO_NAMES) <= set(available_scenarios())
+    for name in SCENARIO_NAMES:
+        scenario = load_scenario(name)
+        sessions = scenario.expand()
+        assert sessions
+        assert scenario.settle_s < scenario.duration_s
+        assert scenario.target.size_m == pytest.approx(0.03576)
+    static = load_scenario("static")
+    depths = [traj.position_m[2] for _, traj in static.expand()]
+    assert min(depths) <= 2.0
+    assert max(depths) == 10.0
+    circle = load_scenario("paper-circle")
+    c, r = circle.trajectory.center_m[2], circle.trajectory.radius_m
+    assert (c - r, c + r) == (pytest.approx(2.0), pytest.approx(10.0))
+
+
+def test_unknown_scenario_and_bad_settings_are_explained() -> None:
+    with pytest.raises(ScenarioError, match="known scenarios"):
+        load_scenario("no-such-scenario")
+    scenario = load_scenario("approach")
+    changed = scenario.with_settings(["scheduler.snap_counts=400", "camera.lens.psf=gaussian"])
+    assert changed.scheduler == {"snap_counts": 400}
+    assert changed.camera.overrides == {"lens.psf": "gaussian"}
+    with pytest.raises(ScenarioError, match="expected scheduler"):
+        scenario.with_settings(["snap_counts=400"])
+
+
+def test_short_fast_run_reports_sane_accuracy(short_run: tuple[Path, dict]) -> None:
+    _, report = short_run
+    assert report["scenario"] == "short-static"
+    assert report["mode"] == "fast"
+    est = report["estimators"]
+    for name in ("measured", "cf1", "cf2", "lpv", "kf"):
+        block = est[name]
+        assert set(block) >= {"n", "bias_m", "std_m", "rms_m", "ss_std_m", "p95_abs_m"}
+        assert block["n"] >= 1
+        # A static disc at 2 m: every estimator within a few centimetres.
+        assert abs(block["bias_m"]) < 0.05, name
+        assert block["rms_m"] < 0.05, name
+    assert est["lpv"]["n"] > est["measured"]["n"]  # estimates per frame, measurements per burst
+    assert report["best"] == "lpv"
+    assert report["bursts"]["accepted"] >= 2
+
+
+def test_each_baseline_yields_numbers(short_run: tuple[Path, dict]) -> None:
+    _, report = short_run
+    for key in ("known_size", "aruco", "full_sweep"):
+        block = report["baselines"][key]
+        assert block is not None, key
+        assert block["n"] >= 1, key
+        assert math.isfinite(block["rms_m"]), key
+        assert block["rms_m"] < 0.5, key  # each is a working depth estimate at 2 m
+
+
+def test_rates_latency_cpu_and_goals_present(short_run: tuple[Path, dict]) -> None:
+    out, report = short_run
+    rates = report["rates"]
+    assert rates["depth_hz"] > 0
+    assert rates["depth_limit_hz"] > 0
+    assert rates["full_sweep_depth_hz"] > 0
+    assert rates["depth_rate_ratio"] == pytest.approx(rates["depth_hz"] / rates["depth_limit_hz"])
+    assert report["latency"] is None  # virtual time: no exposure → MQTT latency
+    cpu = report["cpu"]
+    assert 0 < cpu["core_ms_per_frame_mean"] < 100
+    assert cpu["speedup_vs_real_time"] > 1  # lock-step runs faster than the scenario
+    goals = {g["goal"] for g in report["goals"]}
+    assert any("full_sweep" in g for g in goals)
+    assert any("ss_std" in g for g in goals)
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert any(p.endswith("-depth.png") for p in pngs)
+    assert any(p.endswith("-parabolas.png") for p in pngs)
+
+
+def test_record_writes_a_replayable_recording(short_run: tuple[Path, dict]) -> None:
+    from dffd.recording import RecordingReader
+
+    out, report = short_run
+    rec = out / "recording" / "short-static"
+    assert (rec / "meta.json").exists()
+    reader = RecordingReader(rec)
+    assert len(reader) == round(6.0 * reader.fps)
+    roles = {tag.role for _, tag in reader}
+    assert {"track", "burst"} <= roles
+    assert (rec / "truth.csv").exists()
+    assert report["duration_s"] == pytest.approx(6.0)
+
+
+def test_compare_flags_a_regression(short_run: tuple[Path, dict], tmp_path: Path) -> None:
+    out, report = short_run
+    same = compare_reports(report, report)
+    assert same
+    assert not any(f.regressed for f in same)
+    worse = copy.deepcopy(report)
+    worse["estimators"]["lpv"]["ss_std_m"] = report["estimators"]["lpv"]["ss_std_m"] * 3 + 0.01
+    worse["rates"]["depth_hz"] = report["rates"]["depth_hz"] * 0.5
+    findings = {f.metric: f for f in compare_reports(report, worse)}
+    assert findings["estimators.lpv.ss_std_m"].regressed
+    assert findings["rates.depth_hz"].regressed
+    assert not findings["estimators.cf2.ss_std_m"].regressed
+    worse_path = tmp_path / "worse.json"
+    worse_path.write_text(json.dumps(worse), encoding="utf-8")
+    assert compare_main(out / "report.json", worse_path) == 1
+    assert compare_main(out / "report.json", out / "report.json") == 0
+
+
+def test_known_size_and_sweep_baselines_on_exact_inputs() -> None:
+    from dffd.core.synthetic import synthetic_lens
+
+    # z = f R / r: 31 mm, 5 µm pixels, R = 35.76 mm, r = 110.856 px → 2 m
+    assert known_size_depth(110.856, 0.03576, 31.0, 0.005) == pytest.approx(2.0, rel=1e-4)
+    assert square_side_for_size(1.0) == pytest.approx(math.sqrt(3.0))
+    lens = synthetic_lens()
+    true_z = 3.0
+    v_true = lens.v_from_depth(true_z)
+    counts = np.linspace(lens.counts_range[0], lens.counts_range[1], 16).round().astype(int)
+    v = lens.v_from_counts_array(counts)
+    sharp = np.exp(-(((v - v_true) / 0.05) ** 2))  # Gaussian in v: the log-parabola is exact
+    z = sweep_depth(counts.tolist(), sharp.tolist(), lens)
+    assert z == pytest.approx(true_z, rel=0.02)
