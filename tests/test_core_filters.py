@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -183,7 +184,7 @@ def test_exact_discretisation_matches_numerical_integration() -> None:
     # and over many frames the product of ratios is the integral: no drift
     ts = np.arange(0.0, 5.0, 1 / 30)
     z = 5.0
-    for a, c in zip(ts[:-1], ts[1:], strict=True):
+    for a, c in itertools.pairwise(ts):
         z *= DepthKF.transition(r(a) / r(c), c - a)[0, 0]
     assert z == pytest.approx(5.0 * r(ts[0]) / r(ts[-1]), rel=1e-12)
 

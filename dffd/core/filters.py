@@ -251,7 +251,7 @@ class LPVObserver:
 class KFNoise:
     """Noise model of the time-varying Kalman filter."""
 
-    sigma_rho: float = 0.002  # 1/s/√Hz: white noise on ρ (size-ratio noise) ⇒ ż noise ∝ z
+    sigma_rho: float = 0.001  # 1/s/√Hz: white noise on ρ (size-ratio noise) ⇒ ż noise ∝ z
     sigma_b: float = 0.002  # m/s/√Hz: random walk of the disturbance b
     sigma_v_mm: float = 0.0003  # σ of v̂ from a burst; z_m noise = σ_v |dz/dv| ∝ z²
     sigma_b0: float = 0.05  # m/s: initial uncertainty of b

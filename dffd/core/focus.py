@@ -118,10 +118,10 @@ def fit_burst(
         return _rejected("vertex far outside the bracket", alpha, v_hat, chi, sigma_v)
     if abs(xv) > 1:
         reason = "vertex outside the bracket (extrapolated)"
-    if c_min <= 0:
-        return _rejected("cost at the vertex <= 0", alpha, v_hat, chi, sigma_v)
     if dof > 0 and chi > cfg.max_chi:
         return _rejected("poor residual", alpha, v_hat, chi, sigma_v)
+    if c_min <= 0:
+        return _rejected("cost at the vertex <= 0", alpha, v_hat, chi, sigma_v)
     if sigma_x > cfg.max_rel_sigma_v:
         return _rejected("ill-conditioned: vertex uncertain across the bracket", alpha, v_hat,
                          chi, sigma_v)

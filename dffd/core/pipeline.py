@@ -72,8 +72,8 @@ class PipelineConfig:
     cf2_size_bursts: int = 10  # ... over this many accepted bursts, then frozen (paper: fixed R)
     warmup_bursts: int = 3  # CF/LPV states are seeded from the KF at the first accepted bursts
     # LPV observer: error poles and the declared ρ range of the gain schedule
-    lpv_omega: float = 1.0  # rad/s
-    lpv_zeta: float = 0.7
+    lpv_omega: float = 0.6  # rad/s (tuned on the synthetic paper-like circle; decay 0.48/s)
+    lpv_zeta: float = 0.8
     rho_min: float = -2.0  # 1/s: ρ = ṙ/r = −ż/z; ±2/s covers 4 m/s at 2 m
     rho_max: float = 2.0
     kf_noise: KFNoise = field(default_factory=KFNoise)

@@ -1,0 +1,67 @@
+"""Lens model: loading, validation, PCHIP round trips, thin lens."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from dffd.core.lens import Lens, LensError
+from dffd.core.synthetic import synthetic_lens
+
+SIM_LENS = Path(__file__).resolve().parents[1] / "config" / "lenses" / "sim-evi-d100.toml"
+
+
+def test_loads_the_simulator_lens_file() -> None:
+    lens = Lens.from_toml(SIM_LENS)
+    assert lens.focal_length_mm == pytest.approx(31.0)
+    assert lens.counts_range[0] == 4096
+    z = 5.0
+    c = lens.counts_for_depth(z)
+    assert lens.depth_from_v(lens.v_from_counts(c)) == pytest.approx(z, rel=0.01)
+
+
+def test_round_trips_and_thin_lens() -> None:
+    lens = synthetic_lens()
+    for counts in (4096, 5000, 12345, 30000, 33792):
+        assert lens.counts_from_v(lens.v_from_counts(counts)) == counts
+    for z in (1.5, 2.0, 5.0, 10.0):
+        v = lens.v_from_depth(z)
+        assert lens.depth_from_v(v) == pytest.approx(z, rel=1e-12)
+        # dz/dv against a finite difference
+        h = 1e-6
+        fd = (lens.depth_from_v(v + h) - lens.depth_from_v(v - h)) / (2 * h)
+        assert lens.dz_dv(v) == pytest.approx(fd, rel=1e-5)
+    assert Lens.from_meta(lens.to_meta()).focus_v_mm == lens.focus_v_mm
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"focal_length_mm": None}, "focal_length_mm"),
+        ({"pixel_pitch_mm": -1.0}, "pixel_pitch_mm"),
+        ({"focus_table": [[4096, 31.1]]}, "focus_table"),
+        ({"focus_table": [[4096, 31.1], [4000, 31.2]]}, "counts"),
+        ({"focus_table": [[4096, 31.1], [5000, 31.3], [6000, 31.2]]}, "monotone"),
+        ({"focus_table": [[4096, 30.0], [5000, 31.3]]}, "focal_length_mm"),
+        ({"focus_table": "nope"}, "focus_table"),
+    ],
+)
+def test_validation_names_the_field(change: dict[str, object], field: str) -> None:
+    meta = synthetic_lens().to_meta()
+    meta.update(change)
+    with pytest.raises(LensError, match=field):
+        Lens.from_meta(meta)
+
+
+def test_missing_file_and_bad_toml(tmp_path: Path) -> None:
+    with pytest.raises(LensError, match="cannot read"):
+        Lens.from_toml(tmp_path / "absent.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[lens\n")
+    with pytest.raises(LensError, match="not valid TOML"):
+        Lens.from_toml(bad)
+    empty = tmp_path / "empty.toml"
+    empty.write_text("x = 1\n")
+    with pytest.raises(LensError, match=r"\[lens\]"):
+        Lens.from_toml(empty)

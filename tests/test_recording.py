@@ -1,0 +1,85 @@
+"""Recording format (DESIGN §7): writer/reader round trip, inferred bursts, errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dffd.core.synthetic import synthetic_lens
+from dffd.core.types import FrameTag
+from dffd.recording import RecordingError, RecordingReader, RecordingWriter
+from drivers.frames import Frame
+
+TAGS = [
+    FrameTag("track", 10000, 1.5, -2.0),
+    FrameTag("transit", None, 1.5, -2.0),
+    FrameTag("burst", 9000, 1.5, -2.0, (0, 0)),
+    FrameTag("burst", 10000, 1.5, -2.0, (0, 1)),
+    FrameTag("burst", 11000, 1.5, -2.0, (0, 2)),
+    FrameTag("track", 10000, 1.6, -2.1),
+]
+
+
+def _write(path: Path, truth: bool = True, bgr: bool = False) -> list[Frame]:
+    rng = np.random.default_rng(0)
+    frames = []
+    with RecordingWriter(path, 30, (64, 48), synthetic_lens().to_meta()) as w:
+        for i, tag in enumerate(TAGS):
+            shape = (48, 64, 3) if bgr else (48, 64)
+            f = Frame(i, 100.0 + i / 30, rng.integers(0, 256, shape, dtype=np.uint8))
+            w.write(f, tag, (4.0 + 0.01 * i, 0.1, -0.2) if truth else None)
+            frames.append(f)
+    return frames
+
+
+@pytest.mark.parametrize("bgr", [False, True])
+def test_round_trip_is_lossless(tmp_path: Path, bgr: bool) -> None:
+    frames = _write(tmp_path / "run", bgr=bgr)
+    rec = RecordingReader(tmp_path / "run")
+    assert rec.fps == 30
+    assert rec.frame_size == (64, 48)
+    assert rec.meta["lens"]["focal_length_mm"] == 31.0
+    got = list(rec)
+    assert [t for _, t in got] == TAGS
+    for (f, _), orig in zip(got, frames, strict=True):
+        assert f.index == orig.index
+        assert f.t == orig.t
+        np.testing.assert_array_equal(f.image, orig.image)
+    assert rec.truth is not None
+    np.testing.assert_allclose(rec.truth.z_m, [4.0 + 0.01 * i for i in range(6)])
+    assert rec.truth.x_m is not None
+    assert rec.truth.z_at([100.0 + 0.5 / 30])[0] == pytest.approx(4.005)
+
+
+def test_frames_csv_has_the_design_columns_and_bursts_are_inferred(tmp_path: Path) -> None:
+    _write(tmp_path / "run", truth=False)
+    csv_path = tmp_path / "run" / "frames.csv"
+    lines = csv_path.read_text().splitlines()
+    assert lines[0].startswith("index,t_s,role,focus_counts,pan_deg,tilt_deg,file")
+    assert lines[2].split(",")[3] == ""  # transit: empty focus_counts
+    # strip the optional burst columns: ids are inferred from runs of burst frames
+    csv_path.write_text("\n".join(",".join(ln.split(",")[:7]) for ln in lines) + "\n")
+    rec = RecordingReader(tmp_path / "run")
+    assert rec.truth is None
+    assert [t.burst for t in (r.tag for r in rec.records)] == [None, None, (0, 0), (0, 1),
+                                                              (0, 2), None]
+
+
+def test_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(RecordingError, match=r"meta\.json not found"):
+        RecordingReader(tmp_path)
+    _write(tmp_path / "run")
+    with pytest.raises(RecordingError, match="already holds a recording"):
+        RecordingWriter(tmp_path / "run", 30, (64, 48), {})
+    meta = tmp_path / "run" / "meta.json"
+    meta.write_text(json.dumps({"schema": 2}))
+    with pytest.raises(RecordingError, match="schema"):
+        RecordingReader(tmp_path / "run")
+    meta.write_text(json.dumps({"schema": 1, "fps": 30, "frame_size": [64, 48], "lens": {}}))
+    frames_csv = tmp_path / "run" / "frames.csv"
+    frames_csv.write_text(frames_csv.read_text().replace("track", "tracking", 1))
+    with pytest.raises(RecordingError, match="line 2"):
+        RecordingReader(tmp_path / "run")
