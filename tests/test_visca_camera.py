@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import time
 
 import pytest
@@ -249,3 +250,11 @@ def test_evi_d70_profile_ranges() -> None:
         EVI_D70.tilt_to_counts(-31.0)
     with pytest.raises(ValueError, match="known models"):
         profile_for("EVI-H100")
+
+
+async def test_early_completion_profile_confirms_with_a_position_inquiry() -> None:
+    early = dataclasses.replace(EVI_D100, focus_completion_early=True)
+    async with sim_camera(profile=early) as (_, link, camera):
+        before = link.health().replies.get("InquiryReply", 0)
+        await camera.focus_direct(0x2400)
+        assert link.health().replies["InquiryReply"] == before + 1

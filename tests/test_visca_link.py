@@ -364,3 +364,22 @@ async def test_port_vanishing_and_returning(
             r for r in caplog.records if r.levelno == logging.WARNING and "failed" in r.message
         ]
         assert len(warnings) == 1
+
+
+async def test_requests_during_a_power_cycle_wait_for_re_initialisation() -> None:
+    async with sim_camera() as (server, link, camera):
+        reinitialised = reinit_event(link)
+        server.power_cycle(off_s=0.1)
+        # Issued while the camera is dead: the first attempt times out or is failed by the
+        # Network Change; the retry is held until the camera is back in manual focus.
+        await camera.focus_direct(0x5000)
+        assert reinitialised.is_set()
+        assert server.state.autofocus is False
+        assert await camera.focus_position() == 0x5000
+
+
+async def test_loop_url_echo_is_not_taken_for_a_reply() -> None:
+    async with ViscaLink("loop://", timeouts=FAST) as link:
+        with pytest.raises(ViscaTimeoutError):
+            await link.inquire(1, codec.PowerInquiry())
+        assert link.health().stray_replies == 1  # our own request, echoed

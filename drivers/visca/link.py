@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import logging
 import threading
 import time
@@ -155,6 +156,11 @@ RESET_COMPLETION_TIMEOUT_S = 15.0
 POWER_COMPLETION_TIMEOUT_S = 15.0
 # Absolute/relative moves: the camera layer computes distance / speed; this is the fallback.
 PAN_TILT_MOVE_COMPLETION_TIMEOUT_S = 20.0
+
+# Set inside the re-initialisation task: its requests pass the gate that holds everyone else's.
+_REINIT_CONTEXT: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "visca_reinit", default=False
+)
 
 COMMAND_QUEUE_MAX = 16  # per camera; a caller issuing faster than the camera runs gets an error
 INQUIRY_QUEUE_MAX = 16  # per camera
@@ -318,7 +324,11 @@ class ViscaLink:
         self._broadcast_lock = asyncio.Lock()
         self._address_lock = asyncio.Lock()
         self._addressed = False
-        self._readdressing = False
+        # Closed from a Network Change or reconnect until the chain is re-addressed and the
+        # cameras re-initialised: only the re-initialisation's own requests go out meanwhile
+        # (a user's retried Focus Direct must not reach a camera still in autofocus, nor be
+        # wiped by the re-initialisation's IF_Clear).
+        self._gated = False
         self._closing = False
         self._connected = False
         self._down_reported = False
@@ -466,6 +476,7 @@ class ViscaLink:
             completion_timeout=timeout,
             acked=self._future(),
             done=self._future(),
+            privileged=_REINIT_CONTEXT.get(),
         )
         if priority:
             cam.queue.appendleft(entry)
@@ -502,7 +513,10 @@ class ViscaLink:
                 "poll less often"
             )
         entry = _InquiryEntry(
-            address=address, request=cast(Inquiry, inquiry), result=self._future()
+            address=address,
+            request=cast(Inquiry, inquiry),
+            result=self._future(),
+            privileged=_REINIT_CONTEXT.get(),
         )
         cam.inquiries.append(entry)
         entry.timer = self._call_later(
@@ -579,14 +593,15 @@ class ViscaLink:
 
     def _pump(self, cam: _CameraState) -> None:
         """Write whatever may be written now for ``cam``."""
-        if not self._connected or self._readdressing or self._closing:
+        if not self._connected or self._closing:
             return
         now = time.monotonic()
-        if cam.inquiry_pending is None and cam.inquiries:
+        inquiry = self._eligible(cam.inquiries)
+        if cam.inquiry_pending is None and inquiry is not None:
             if now < cam.inquiry_guard_until:
                 self._schedule_pump(cam, cam.inquiry_guard_until - now)
             else:
-                inquiry = cam.inquiries.popleft()
+                cam.inquiries.remove(inquiry)
                 self._cancel_timer(inquiry)
                 cam.inquiry_pending = inquiry
                 cam.first_reply.append(inquiry)
@@ -595,21 +610,28 @@ class ViscaLink:
                 )
                 if not self._send(inquiry.address, inquiry.request, inquiry.name):
                     return
+        entry = self._eligible(cam.queue)
         if (
             cam.awaiting_ack is None
-            and cam.queue
+            and entry is not None
             and len(cam.sockets) < cam.max_sockets
             and cam.hold is None
         ):
             if now < cam.command_guard_until:
                 self._schedule_pump(cam, cam.command_guard_until - now)
                 return
-            entry = cam.queue.popleft()
+            cam.queue.remove(entry)
             self._cancel_timer(entry)
             cam.awaiting_ack = entry
             cam.first_reply.append(entry)
             entry.timer = self._call_later(self.timeouts.ack_s, self._on_ack_timeout, cam, entry)
             self._send(entry.address, entry.request, entry.name)
+
+    def _eligible(self, entries: deque[EntryT]) -> EntryT | None:
+        """The next entry that may go now (while gated: the first re-initialisation request)."""
+        if not self._gated:
+            return entries[0] if entries else None
+        return next((e for e in entries if e.privileged), None)
 
     def _schedule_pump(self, cam: _CameraState, delay: float) -> None:
         if cam.pump_timer is None:
@@ -1124,41 +1146,45 @@ class ViscaLink:
                 delay = min(delay * 2.0, self.timeouts.reconnect_max_s)
                 continue
             self._reconnects += 1
-            logger.warning("VISCA port %s is back after %d attempt(s)", self.url, attempts)
+            logger.info("VISCA port %s is back after %d attempt(s)", self.url, attempts)
             self._schedule_reinit()
             return
 
     def _schedule_reinit(self) -> None:
         self._reinit_requests += 1
+        self._gated = True
         if self._reinit_task is not None and not self._reinit_task.done():
             return
         self._reinit_task = self._spawn(self._reinitialize(), "reinitialize")
 
     async def _reinitialize(self) -> None:
-        while True:
-            requested = self._reinit_requests
-            self._readdressing = True
-            try:
-                await self.ensure_addressed(force=True)
-            except ViscaError as exc:
-                logger.warning("re-addressing the VISCA chain on %s failed: %s", self.url, exc)
-            finally:
-                self._readdressing = False
-                for cam in list(self._cameras.values()):
-                    self._pump(cam)
-            if self._reinit_requests != requested:
-                continue
-            for callback in list(self._reinit_callbacks):
+        _REINIT_CONTEXT.set(True)  # this task's context only
+        try:
+            while True:
+                requested = self._reinit_requests
                 try:
-                    async with asyncio.timeout(self.timeouts.reinit_s):
-                        await callback()
-                except (ViscaError, TimeoutError) as exc:
-                    logger.warning("re-initialising a camera on %s failed: %s", self.url, exc)
+                    await self.ensure_addressed(force=True)
+                except ViscaError as exc:
+                    logger.warning("re-addressing the VISCA chain on %s failed: %s", self.url, exc)
                 if self._reinit_requests != requested:
-                    break
-            if self._reinit_requests == requested:
-                self._down_reported = False
-                return
+                    continue
+                for callback in list(self._reinit_callbacks):
+                    try:
+                        async with asyncio.timeout(self.timeouts.reinit_s):
+                            await callback()
+                    except (ViscaError, TimeoutError) as exc:
+                        logger.warning("re-initialising a camera on %s failed: %s", self.url, exc)
+                    except Exception:  # a callback's bug must not stop the link
+                        logger.exception("re-initialisation callback failed on %s", self.url)
+                    if self._reinit_requests != requested:
+                        break
+                if self._reinit_requests == requested:
+                    self._down_reported = False
+                    return
+        finally:
+            self._gated = False
+            for cam in list(self._cameras.values()):
+                self._pump(cam)
 
     def _fail_everything(self, error: ViscaError) -> None:
         """Fail every waiter (port lost, closed, or chain reset) and forget the socket state."""
@@ -1247,6 +1273,7 @@ class _CommandEntry:
     completion_timeout: float
     acked: asyncio.Future[int]
     done: asyncio.Future[None]
+    privileged: bool = False  # sent by the re-initialisation (passes the gate)
     socket: int | None = None
     retries: int = 0
     timer: asyncio.TimerHandle | None = None
@@ -1265,6 +1292,7 @@ class _InquiryEntry:
     address: int
     request: Inquiry
     result: asyncio.Future[Any]
+    privileged: bool = False
     timer: asyncio.TimerHandle | None = None
 
     def __post_init__(self) -> None:
@@ -1301,6 +1329,7 @@ class _BroadcastEntry:
 
 
 _Entry = _CommandEntry | _InquiryEntry | _CancelEntry
+EntryT = TypeVar("EntryT", _CommandEntry, _InquiryEntry)
 
 
 @dataclass(eq=False)
