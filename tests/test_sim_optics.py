@@ -346,6 +346,16 @@ def test_transit_frames_and_focus_jitter_are_recorded(reference) -> None:
     assert still.focus_counts == settled.focus_counts  # … kept until the next move
 
 
+def test_focus_oracle_gives_the_counts_that_make_the_target_sharp(reference) -> None:
+    source, state, clock = _scene(_quiet(reference), _static(4.0))
+    state.focus.jump(source.focus_oracle(clock.t), clock.t)
+    source.render_frame(0)
+    truth = source.truth_for(0)
+    assert truth is not None
+    assert truth.blur_radius_px == pytest.approx(0.0, abs=1e-6)
+    assert source.focus_oracle(clock.t) == pytest.approx(truth.focus_counts)
+
+
 def test_truth_table_is_bounded(reference) -> None:
     config = with_overrides(reference, {"capture.truth_frames": 16})
     source, _, _ = _scene(config, _static(5.0))

@@ -213,6 +213,19 @@ class SimFrameSource:
         """Render an exposure centred at ``t`` (not recorded in the truth table)."""
         return self._render(t, None)
 
+    def focus_oracle(self, t: float) -> float:
+        """Focus counts that make the target sharp at time ``t`` (an ideal AF's choice).
+
+        Pass as ``ViscaDevice(focus_oracle=source.focus_oracle)`` for One Push AF.
+        """
+        mid = self.state.snapshot(t)
+        pose = self.world.pose(t - self.world_epoch)
+        z = float((pose.position_m @ _world_from_camera(mid.pan_deg, mid.tilt_deg))[2])
+        low, high = self.state.focus_limits
+        if z <= MIN_DEPTH_M:
+            return low
+        return min(high, max(low, self.optics.focus_counts_for_depth(z)))
+
     def truth_for(self, index: int) -> FrameTruth | None:
         """Ground truth of a recently rendered frame (None if unknown or evicted)."""
         with self._render_lock:
