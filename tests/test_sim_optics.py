@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import PchipInterpolator
 
-from drivers.frames import Frame, FrameSource
+from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.sim.config import (
     CaptureConfig,
     SimCameraConfig,
@@ -544,3 +544,15 @@ async def test_live_source_counts_frames_lost_while_the_loop_stalled(reference) 
         await source.close()
     assert source.dropped_frames >= 25
     assert frame.index == source.dropped_frames
+
+
+async def test_close_wakes_a_waiting_consumer(reference) -> None:
+    config = with_overrides(reference, {"capture.capture_latency_frames": 10.0})
+    source = SimFrameSource.from_config(config, camera_state_for(config))
+    await source.start()
+    waiter = asyncio.create_task(source.next_frame())
+    await asyncio.sleep(0)  # let it start waiting (first delivery is ≥ 0.33 s away)
+    await source.close()
+    async with asyncio.timeout(FRAME_TIMEOUT_S):
+        with pytest.raises(FrameSourceError):
+            await waiter

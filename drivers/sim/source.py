@@ -172,6 +172,8 @@ class SimFrameSource:
         if self._task is None:
             raise FrameSourceError("simulated frame source not started; call start() first")
         while not self._queue:
+            if self._closed or self._task is None:
+                raise FrameSourceError("simulated frame source closed")
             if self._task.done():
                 exc = None if self._task.cancelled() else self._task.exception()
                 raise FrameSourceError(f"simulated frame source stopped: {exc!r}") from exc
