@@ -38,8 +38,11 @@ arrives (dropped by the capture) leaves the burst incomplete (counted in :class:
 
 Burst policy: one burst after ``burst_every_frames`` tracking exposures at the tracking focus, or
 earlier when the reported σ of ẑ exceeds ``sigma_trigger_m``. Slot order minimises motor travel
-(including the return to the tracking focus); a planned setting within ``snap_counts`` of the
-current focus is taken where the lens already is (the core fits over the real counts in the tag).
+(including the return to the tracking focus); a planned setting within ``snap_fraction`` of the
+plan's step (or ``snap_counts``) of the current focus is taken where the lens already is (the core
+fits over the real counts in the tag). Between bursts the lens is re-focused only when the plan's
+centre has moved by more than ``retarget_steps`` bracket steps: chasing estimate noise with focus
+moves would cost transit frames and restart the tracking count.
 
 Pan/tilt: a proportional controller on the centroid's angular error (pixels → angle through the
 focal length and pixel pitch), corrected for the camera's own motion since the exposure, issuing
@@ -52,7 +55,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from dffd.core.types import FrameTag
@@ -81,6 +84,8 @@ TIME_EPS_S = 1e-7
 # Stationary-focus intervals kept for tagging late frames: at one move per frame this still covers
 # several seconds, far more than any capture latency.
 FOCUS_HISTORY = 64
+# Centroids further apart than this (s) do not make a velocity (the target was lost between).
+MAX_VELOCITY_GAP_S = 0.5
 # Burst completion times kept for the achieved-rate estimate.
 RATE_WINDOW = 64
 
@@ -104,6 +109,8 @@ class SchedulerConfig:
     burst_every_frames: int = 10
     sigma_trigger_m: float | None = None
     snap_counts: int = 40
+    snap_fraction: float = 0.25
+    retarget_steps: float = 0.25
     # Focus motor and link timing.
     focus_speed_counts_per_s: float = 20000.0
     focus_tolerance_counts: int = 2
@@ -118,6 +125,9 @@ class SchedulerConfig:
     pixel_pitch_mm: float = 0.006
     frame_size: tuple[int, int] = (640, 480)
     pan_tilt_gain_per_s: float = 1.5  # commanded deg/s per degree of error
+    pan_tilt_feedforward: bool = True  # add the target's filtered angular velocity
+    pan_tilt_velocity_tau_s: float = 0.3  # time constant of that velocity filter
+    pan_tilt_lost_s: float = 0.5  # no centroid for this long: stop pan/tilt
     pan_tilt_deadband_deg: float = 0.3
     pan_tilt_min_interval_s: float = 0.1
     pan_tilt_poll_interval_s: float = 0.25
@@ -553,6 +563,12 @@ class Scheduler:
         """Tracking focus to use until the core plans bursts (e.g. from an initial depth)."""
         self._track_counts = int(counts)
 
+    def set_policy(self, every_frames: int, sigma_trigger_m: float | None) -> None:
+        """Change the burst policy at run time (the ``set_burst_policy`` command)."""
+        self.config = replace(
+            self.config, burst_every_frames=every_frames, sigma_trigger_m=sigma_trigger_m
+        )
+
     def request_burst(self) -> None:
         """Start a burst at the next opportunity (if a plan exists)."""
         self._burst_now = True
@@ -564,7 +580,7 @@ class Scheduler:
 
     def stop_pan_tilt(self) -> None:
         """Stop following the target: one stop is issued, then nothing until a new centroid."""
-        self._pt.on_centroid(0.0, None, 0.0, 0.0)
+        self._pt.on_centroid(math.inf, None, 0.0, 0.0)
 
     # -- decisions --------------------------------------------------------------------------
     def next_actions(self, now: float) -> list[Action]:
@@ -613,7 +629,7 @@ class Scheduler:
         if self._phase == "track":
             assert self._counts is not None
             home = self._track_counts
-            if home is not None and abs(home - self._counts) > self.config.snap_counts:
+            if home is not None and abs(home - self._counts) > self._retarget_threshold():
                 # The best focus drifted away from the lens: re-focus the tracking frames.
                 return self._issue_move(home, now, "return_move")
             if self._should_burst(now):
@@ -658,6 +674,19 @@ class Scheduler:
                 # A stalled capture: nothing to wait for until the next frame arrives.
                 return due if self._frames_flowing(due) else None
         return None
+
+    def _plan_step(self) -> int:
+        """Smallest gap between the planned settings (0 without a plan)."""
+        plan = self._plan
+        if plan is None or len(plan) < 2:
+            return 0
+        return min(b - a for a, b in itertools.pairwise(plan))
+
+    def _snap_threshold(self) -> float:
+        return max(float(self.config.snap_counts), self.config.snap_fraction * self._plan_step())
+
+    def _retarget_threshold(self) -> float:
+        return max(float(self.config.snap_counts), self.config.retarget_steps * self._plan_step())
 
     def _should_burst(self, now: float) -> bool:
         if self._t_ref is None or not self._frames_flowing(now):
@@ -704,7 +733,7 @@ class Scheduler:
         settings = list(self._plan)
         # Take a planned setting where the lens already is (the tag carries the real counts).
         nearest = min(range(len(settings)), key=lambda i: abs(settings[i] - current))
-        if abs(settings[nearest] - current) <= self.config.snap_counts:
+        if abs(settings[nearest] - current) <= self._snap_threshold():
             settings[nearest] = current
         home = self._track_counts if self._track_counts is not None else current
         order = order_settings(current, tuple(settings), home, self.config)
@@ -910,6 +939,8 @@ class _PanTilt:
         self._last_cmd_t = -math.inf
         self._last_cmd: PanTiltDrive | PanTiltAbsolute | PanTiltStop | None = None
         self._target: tuple[float, float] | None = None  # target direction, pan/tilt frame, deg
+        self._target_t = -math.inf  # exposure time of that direction
+        self._velocity = (0.0, 0.0)  # filtered target angular velocity, deg/s
         self._stop_pending = False
         self._eval_due = math.inf
         self._last_focus_cmd = -math.inf
@@ -943,10 +974,15 @@ class _PanTilt:
         if cfg.pan_tilt_mode == "off":
             return
         if centroid is None:
+            # A frame without a usable contour (transit blur, a brief occlusion) is not a lost
+            # target: keep following the extrapolated direction for ``pan_tilt_lost_s``.
+            if self._target is not None and t - self._target_t <= cfg.pan_tilt_lost_s:
+                return
             if self._target is not None or self._rate != (0.0, 0.0) or self._goal is not None:
                 self._stop_pending = True
                 self._eval_due = self._last_cmd_t + cfg.pan_tilt_min_interval_s
             self._target = None
+            self._velocity = (0.0, 0.0)
             return
         w, h = cfg.frame_size
         ex = cfg.pan_sign * pixel_offset_to_deg(
@@ -957,7 +993,24 @@ class _PanTilt:
         )
         # The target's direction in the pan/tilt frame at that exposure; the error *now* subtracts
         # the camera's own motion since then (the capture latency would otherwise overshoot).
-        self._target = (pan + ex, tilt + ey)
+        target = (pan + ex, tilt + ey)
+        prev, prev_t = self._target, self._target_t
+        if prev is not None and t > prev_t and t - prev_t <= MAX_VELOCITY_GAP_S:
+            # Target angular velocity (feed-forward): a first-order filter on the differences of
+            # its direction; without it a P-controller trails a moving target by ω/K, which at
+            # telephoto is more than the field of view.
+            dt = t - prev_t
+            a = min(1.0, dt / cfg.pan_tilt_velocity_tau_s)
+            vp = (target[0] - prev[0]) / dt
+            vt = (target[1] - prev[1]) / dt
+            self._velocity = (
+                self._velocity[0] + a * (vp - self._velocity[0]),
+                self._velocity[1] + a * (vt - self._velocity[1]),
+            )
+        elif prev is None:
+            self._velocity = (0.0, 0.0)
+        self._target = target
+        self._target_t = t
         self._stop_pending = False
         self._eval_due = min(self._eval_due, self._last_cmd_t + cfg.pan_tilt_min_interval_s)
 
@@ -1003,8 +1056,10 @@ class _PanTilt:
         if self._target is None:
             return None
         pan_now, tilt_now = self.at(now)
-        err_p = self._target[0] - pan_now
-        err_t = self._target[1] - tilt_now
+        ff = self._velocity if cfg.pan_tilt_feedforward else (0.0, 0.0)
+        ahead = max(0.0, now - self._target_t)  # extrapolate the target to now
+        err_p = self._target[0] + ff[0] * ahead - pan_now
+        err_t = self._target[1] + ff[1] * ahead - tilt_now
         dead = cfg.pan_tilt_deadband_deg
         if cfg.pan_tilt_mode == "absolute":
             if abs(err_p) <= dead and abs(err_t) <= dead:
@@ -1019,8 +1074,8 @@ class _PanTilt:
             return PanTiltAbsolute(
                 self._target[0], self._target[1], idx, min(idx, TILT_MAX_SPEED_INDEX)
             )
-        rate_p = 0.0 if abs(err_p) <= dead else cfg.pan_tilt_gain_per_s * err_p
-        rate_t = 0.0 if abs(err_t) <= dead else cfg.pan_tilt_gain_per_s * err_t
+        rate_p = _axis_rate(err_p, ff[0], dead, cfg.pan_tilt_gain_per_s)
+        rate_t = _axis_rate(err_t, ff[1], dead, cfg.pan_tilt_gain_per_s)
         ip = visca_speed_index(rate_p, PAN_MAX_SPEED_INDEX)
         it = visca_speed_index(rate_t, TILT_MAX_SPEED_INDEX)
         if ip == 0 and it == 0:
@@ -1044,6 +1099,13 @@ class _PanTilt:
         self._last_cmd = cmd
         self._last_cmd_t = now
         self._eval_due = now + self.config.pan_tilt_min_interval_s
+
+
+def _axis_rate(error: float, feedforward: float, deadband: float, gain: float) -> float:
+    """Feed-forward plus proportional rate; zero inside the deadband for a slow target."""
+    if abs(error) <= deadband and abs(feedforward) < VISCA_SPEEDS_DEG_S[0] / 2.0:
+        return 0.0
+    return feedforward + (gain * error if abs(error) > deadband else 0.0)
 
 
 def _approach(start: float, goal: float, speed: float, dt: float) -> float:

@@ -602,3 +602,43 @@ def test_pan_tilt_off_issues_nothing() -> None:
     h = Harness(BASE, centroid=(600.0, 40.0))
     h.run(0.5)
     assert not any(isinstance(a, (*PT_CMDS, PanTiltInquiry)) for _, a in h.actions)
+
+
+def test_set_policy_changes_the_burst_interval_at_run_time() -> None:
+    h = Harness(replace(BASE, burst_every_frames=1000))
+    h.run(1.0)
+    assert h.sched.stats.bursts_started == 0
+    h.sched.set_policy(4, None)
+    h.run(2.0)
+    assert h.wrong == []
+    assert h.sched.stats.bursts_completed >= 3
+
+
+def test_feedforward_follows_a_moving_target_and_missing_centroids_do_not_stop() -> None:
+    s = Scheduler(replace(PT, pan_tilt_poll_interval_s=100.0, pan_tilt_gain_per_s=0.5))
+    s.next_actions(0.0)
+    s.on_pan_tilt_position(0.0, 0.0, 0.0)
+    px_per_deg = 4.0 / 0.006 * math.radians(1.0)
+    # The target crosses the (fixed) image at 10°/s; centroids every 1/30 s.
+    for k in range(10):
+        t = 0.5 + k / 30
+        s.on_estimate(
+            t,
+            sigma_m=None,
+            plan=None,
+            centroid_px=(319.5 + 10.0 * (t - 0.5) * px_per_deg, 239.5),
+            pan_deg=0.0,
+            tilt_deg=0.0,
+        )
+    drives = [a for a in s.next_actions(0.9) if isinstance(a, PanTiltDrive)]
+    assert drives
+    # Feed-forward: about the target's 10°/s even with a small proportional gain.
+    assert 7.0 <= drives[0].pan_rate_deg_s <= 14.0
+    s.on_pan_tilt_done(0.91)
+    # One frame without a contour does not stop the head …
+    s.on_estimate(0.95, sigma_m=None, plan=None, centroid_px=None)
+    assert not any(isinstance(a, PanTiltStop) for a in s.next_actions(1.05))
+    s.on_pan_tilt_done(1.06)
+    # … a target gone for longer than pan_tilt_lost_s does.
+    s.on_estimate(1.6, sigma_m=None, plan=None, centroid_px=None)
+    assert any(isinstance(a, PanTiltStop) for a in s.next_actions(1.7))

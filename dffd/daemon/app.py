@@ -1,0 +1,1116 @@
+"""``dffd run``: the daemon — camera, capture, scheduler, estimator thread, MQTT, log, systemd.
+
+The asyncio shell (DESIGN §1) only moves bytes, frames and messages; every decision is made by
+the pure :class:`~dffd.scheduler.Scheduler` and the estimation core. Layout at run time:
+
+* tasks under one ``asyncio.TaskGroup``: **capture** (frame source → scheduler tag → estimator
+  queue), **scheduler** (wakes on events and on the scheduler's own wake-up time, dispatches its
+  actions), **focus** and **pan/tilt** workers (one action in flight each, on the camera's two
+  VISCA sockets at once), **results** (estimator output → MQTT + JSONL log + scheduler
+  feedback), **status** (retained status, console, sd_notify watchdog), and the MQTT
+  **publisher**;
+* ONE estimator thread running the core behind ONE bounded frame queue (drop-oldest, counted:
+  capture never blocks); results come back through ``loop.call_soon_threadsafe`` into a bounded
+  queue (drop-oldest, counted). Commands that change the core (acquire, release, known size)
+  are applied by that thread between frames, so the core is never touched concurrently.
+
+Without ``--config`` (or with ``camera.driver = "sim"``) the camera is the simulator: its VISCA
+device on a real pty (:class:`~drivers.sim.server.SimCameraServer`), its renderer as the frame
+source, the world of ``sim.scenario``, ground truth on ``…/sim/truth``; ``mqtt.url = "embedded"``
+starts the embedded amqtt broker on 127.0.0.1. With a config naming a serial port, a video
+device and a broker it is the lab service.
+
+Shutdown (SIGTERM/SIGINT): stop pan/tilt, publish the retained ``offline`` status, flush the
+JSONL log, exit 0 — all within :data:`SHUTDOWN_TIMEOUT_S`. sd_notify READY is sent once the
+camera is initialised and frames flow; WATCHDOG pings come from the status task only while
+frames flow.
+
+Exit codes: 0 clean stop, 1 runtime failure (camera, broker, capture, log), 2 configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dffd import __version__
+from dffd.config import REPO_ROOT, ConfigError, DffdConfig, load_config, missing_files
+from dffd.core.lens import Lens, LensError
+from dffd.core.pipeline import Estimate as CoreEstimate
+from dffd.core.pipeline import Measurement as CoreMeasurement
+from dffd.core.pipeline import Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.types import FrameTag
+from dffd.daemon.console import Console, ConsoleSnapshot
+from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
+from dffd.daemon.notify import Notifier
+from dffd.mqtt import models
+from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
+from dffd.mqtt.topics import Topics
+from dffd.scheduler import (
+    Action,
+    FocusInquiry,
+    FocusMove,
+    PanTiltAbsolute,
+    PanTiltDrive,
+    PanTiltInquiry,
+    PanTiltStop,
+    Scheduler,
+    SchedulerConfig,
+    depth_rate_limit,
+    pixel_offset_to_deg,
+)
+from drivers.frames import Frame, FrameSource, FrameSourceError
+from drivers.visca.camera import Camera, profile_for
+from drivers.visca.errors import ViscaError
+from drivers.visca.link import ViscaLink
+
+_LOGGER = logging.getLogger(__name__)
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+
+# -- named timings and bounds -----------------------------------------------------------------
+# Whole shutdown (stop pan/tilt, offline status, log flush, thread join): systemd's default
+# TimeoutStopSec is 90 s; 10 s keeps a restart quick and covers a broker that does not answer.
+SHUTDOWN_TIMEOUT_S = 10.0
+# Pan/tilt stop at shutdown: one command and its Completion (~2 fields) with retries.
+PAN_TILT_STOP_TIMEOUT_S = 2.0
+# Camera initialisation: Address Set, IF_Clear, power (the D100 takes ~10 s from standby), zoom.
+CAMERA_INIT_TIMEOUT_S = 30.0
+# A frame must arrive within this time (30 fps → 33 ms; a USB grabber may stall ~1 s on
+# re-negotiation) before capture is reported stalled (it then keeps waiting).
+FRAME_TIMEOUT_S = 2.0
+# Frames flow if the last one is younger than this (watchdog pings and READY depend on it).
+FRAMES_FLOWING_S = 1.0
+# Status (retained), console and watchdog period. Also the rate window's granularity.
+STATUS_PERIOD_S = 1.0
+# Window over which achieved rates are computed.
+RATE_WINDOW_S = 5.0
+# The scheduler task sleeps at most this long without an event (guards against a lost wake-up).
+SCHEDULER_IDLE_S = 0.5
+# Bounded queues (DESIGN §8: no unbounded queue anywhere).
+FRAME_QUEUE_MAX = 4  # estimator input: a few frames of slack at 30 fps, then drop the oldest
+RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
+ACTION_QUEUE_MAX = 4  # per worker; the scheduler keeps at most one action in flight per socket
+COMMAND_QUEUE_MAX = 16  # core commands waiting for the estimator thread
+# Estimator thread: waits for frames in slices so it notices a stop request.
+ESTIMATOR_POLL_S = 0.2
+ESTIMATOR_JOIN_TIMEOUT_S = 2.0
+# Core commands wait at most this long for the estimator thread to apply them.
+CORE_COMMAND_TIMEOUT_S = 2.0
+# Focus depth used before any estimate (middle of the paper's 2–10 m range).
+INITIAL_FOCUS_DEPTH_M = 4.0
+# Nominal bracket spacing (counts) for the rate limit until the core plans a burst.
+DEFAULT_SPACING_COUNTS = 300
+# Trajectories of the built-in scenarios (same parameters as hil/scenarios/*.toml).
+SCENARIO_WORLDS: dict[str, dict[str, Any]] = {
+    "static": {"kind": "static", "position_m": (0.0, 0.0, 4.0)},
+    "approach": {
+        "kind": "linear", "position_m": (0.0, 0.0, 10.0), "end_m": (0.0, 0.0, 1.5),
+        "speed_mps": 0.3,
+    },
+    "paper-circle": {
+        "kind": "circle", "center_m": (0.0, 0.0, 6.0), "radius_m": 4.0, "speed_mps": 0.25,
+        "phase_deg": 0.0,
+    },
+    "figure-eight": {
+        "kind": "figure-eight", "center_m": (0.0, 0.0, 5.0), "radius_m": 2.0, "speed_mps": 0.3,
+    },
+    "random": {
+        "kind": "random", "center_m": (0.0, 0.0, 6.0), "extent_m": (2.0, 0.3, 3.0),
+        "speed_mps": 0.3,
+    },
+}  # fmt: skip
+DEFAULT_SIM_CAMERA_FILE = REPO_ROOT / "config" / "sim-camera.toml"
+
+
+class DaemonError(RuntimeError):
+    """Start-up or run-time failure; the message says what was wrong and what to do."""
+
+
+# -- CLI ----------------------------------------------------------------------------------------
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """Add the ``dffd run`` options."""
+    parser.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="TOML configuration (default: built-in: simulated camera, embedded broker)",
+    )
+    parser.add_argument(
+        "--no-console",
+        action="store_true",
+        help="no live console view; log a status line every second instead",
+    )
+    parser.add_argument(
+        "--duration",
+        type=float,
+        metavar="SECONDS",
+        help="stop by itself after this many seconds (demos, benchmarks)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run until SIGTERM/SIGINT (or ``--duration``); return the exit code."""
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        print(f"dffd run: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    missing = missing_files(config)
+    if missing:
+        print("dffd run: " + "; ".join(missing), file=sys.stderr)
+        return EXIT_USAGE
+    logging.getLogger("dffd").setLevel(config.log.level)
+    live = not args.no_console and sys.stdout.isatty()
+    if not live and not logging.getLogger().isEnabledFor(logging.INFO):
+        # Without a TTY the status lines are the console; make sure they are visible.
+        logging.getLogger("dffd.daemon.console").setLevel(logging.INFO)
+        logging.getLogger().setLevel(logging.INFO)
+    daemon = Daemon(config, live_console=live, duration_s=args.duration)
+    try:
+        return asyncio.run(daemon.main())
+    except KeyboardInterrupt:
+        return EXIT_OK
+
+
+# -- the estimator thread ------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class _Work:
+    frame: Frame
+    tag: FrameTag
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorResult:
+    """One processed frame, handed back to the event loop."""
+
+    frame_index: int
+    t: float
+    tag: FrameTag
+    output: PipelineOutput
+    sigma_m: float | None
+    plan: tuple[int, int, int] | None
+    centroid_px: tuple[float, float] | None
+    cpu_s: float
+
+
+CoreCommand = Callable[[Pipeline], dict[str, Any] | None]
+
+
+class EstimatorThread:
+    """The core in one dedicated thread behind one bounded drop-oldest queue."""
+
+    def __init__(
+        self,
+        pipeline: Pipeline,
+        deliver: Callable[[EstimatorResult], object],
+        queue_max: int = FRAME_QUEUE_MAX,
+    ) -> None:
+        self.pipeline = pipeline
+        self._deliver = deliver
+        self._frames: deque[_Work] = deque(maxlen=queue_max)
+        self._commands: deque[tuple[CoreCommand, Future[dict[str, Any] | None]]] = deque(
+            maxlen=COMMAND_QUEUE_MAX
+        )
+        self._cond = threading.Condition()
+        self._stop = False
+        self.dropped = 0
+        self.processed = 0
+        self._thread = threading.Thread(target=self._run, name="dffd-estimator", daemon=True)
+
+    def start(self) -> None:
+        """Start the thread."""
+        self._thread.start()
+
+    def submit(self, frame: Frame, tag: FrameTag) -> None:
+        """Queue a frame (never blocks; drops the oldest queued frame when full)."""
+        with self._cond:
+            if len(self._frames) == self._frames.maxlen:
+                self.dropped += 1
+            self._frames.append(_Work(frame, tag))
+            self._cond.notify()
+
+    def call(self, command: CoreCommand) -> Future[dict[str, Any] | None]:
+        """Run ``command(pipeline)`` in the estimator thread before the next frame."""
+        future: Future[dict[str, Any] | None] = Future()
+        with self._cond:
+            if len(self._commands) == self._commands.maxlen:
+                future.set_exception(CommandRejected("too many pending commands; retry"))
+                return future
+            self._commands.append((command, future))
+            self._cond.notify()
+        return future
+
+    def stop(self, timeout_s: float = ESTIMATOR_JOIN_TIMEOUT_S) -> bool:
+        """Ask the thread to finish and join it; True if it did in time."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not (self._stop or self._frames or self._commands):
+                    self._cond.wait(ESTIMATOR_POLL_S)
+                if self._stop:
+                    return
+                commands = list(self._commands)
+                self._commands.clear()
+                work = self._frames.popleft() if self._frames else None
+            for command, future in commands:
+                try:
+                    future.set_result(command(self.pipeline))
+                except Exception as exc:  # noqa: BLE001 - a bad command is answered, never fatal
+                    future.set_exception(exc)
+            if work is not None:
+                try:
+                    self._deliver(self._process(work))
+                except Exception:  # the core must not kill the service on one bad frame
+                    _LOGGER.exception("estimator failed on frame %d", work.frame.index)
+
+    def _process(self, work: _Work) -> EstimatorResult:
+        c0 = time.thread_time()
+        pipeline = self.pipeline
+        out = pipeline.process(work.frame, work.tag)
+        obs = out.observation
+        centroid = obs.centroid if obs is not None and obs.ok else None
+        sigma: float | None = None
+        plan: tuple[int, int, int] | None = None
+        if pipeline.state == "tracking":
+            pred = pipeline.predicted_depth()
+            sigma = None if pred is None else pred[1]
+            if work.tag.focus_counts is not None:
+                plan = pipeline.plan_burst(work.tag.focus_counts)
+        self.processed += 1
+        return EstimatorResult(
+            work.frame.index, work.frame.t, work.tag, out, sigma, plan,
+            None if centroid is None else (float(centroid[0]), float(centroid[1])),
+            time.thread_time() - c0,
+        )  # fmt: skip
+
+
+# -- rates ----------------------------------------------------------------------------------------
+class RateMeter:
+    """Events per second over a sliding window (bounded memory)."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S, max_events: int = 4096) -> None:
+        self.window_s = window_s
+        self._times: deque[float] = deque(maxlen=max_events)
+        self.count = 0
+
+    def add(self, t: float) -> None:
+        """Record one event at ``t``."""
+        self._times.append(t)
+        self.count += 1
+
+    def rate(self, now: float) -> float:
+        """Events per second over the window ending at ``now``."""
+        while self._times and now - self._times[0] > self.window_s:
+            self._times.popleft()
+        if len(self._times) < 2:
+            return 0.0
+        span = max(now - self._times[0], self._times[-1] - self._times[0])
+        return (len(self._times) - 1) / span if span > 0 else 0.0
+
+
+# -- the daemon -----------------------------------------------------------------------------------
+@dataclass
+class _Parts:
+    """Everything started, for orderly shutdown."""
+
+    broker: Any = None
+    sim_server: Any = None
+    link: ViscaLink | None = None
+    source: FrameSource | None = None
+    log: JsonlLog | None = None
+    estimator: EstimatorThread | None = None
+    truth_for: Callable[[int], Any] | None = None
+    exits: list[Callable[[], Awaitable[None]]] = field(default_factory=list)
+
+
+class Daemon:
+    """One dffd service instance; :meth:`main` runs it to completion."""
+
+    def __init__(
+        self, config: DffdConfig, *, live_console: bool = False, duration_s: float | None = None
+    ) -> None:
+        self.config = config
+        self.duration_s = duration_s
+        self.console = Console(live=live_console)
+        self.notifier = Notifier()
+        self.topics = Topics(config.mqtt.topic_prefix, config.camera.name)
+        self.stop_requested = asyncio.Event()
+        self._parts = _Parts()
+        self._wake = asyncio.Event()
+        self._results: asyncio.Queue[EstimatorResult] = asyncio.Queue(RESULT_QUEUE_MAX)
+        self._focus_q: asyncio.Queue[Action] = asyncio.Queue(ACTION_QUEUE_MAX)
+        self._pt_q: asyncio.Queue[Action] = asyncio.Queue(ACTION_QUEUE_MAX)
+        self.results_dropped = 0
+        self.frames = RateMeter()
+        self.estimates = RateMeter()
+        self.measurements = RateMeter()
+        self.bursts_accepted = 0
+        self.bursts_rejected = 0
+        self._estimate_seq = 0
+        self._measurement_seq = 0
+        self._last_frame_mono: float | None = None
+        self._ready_sent = False
+        self._state = "acquiring"
+        self._last_depth: dict[str, float | None] = {}
+        self._last_truth_z: float | None = None
+        self._last_size: float | None = None
+        self._spacing = DEFAULT_SPACING_COUNTS
+        self._t_start = time.monotonic()
+        self.camera: Camera | None = None
+        self.scheduler: Scheduler | None = None
+        self.publisher: Publisher | None = None
+        self._sched_config: SchedulerConfig | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    async def main(self) -> int:
+        """Start everything, run until stopped, shut down; return the exit code."""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self.request_stop)
+        code = EXIT_OK
+        try:
+            with self.console:
+                await self._run()
+        except* DaemonError as group:
+            for error in group.exceptions:
+                _LOGGER.error("%s", error)
+            code = EXIT_FAILURE
+        except* (ViscaError, FrameSourceError, JsonlLogError, OSError) as failures:
+            for failure in failures.exceptions:
+                _LOGGER.error("dffd stopped: %s", failure)
+            code = EXIT_FAILURE
+        finally:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
+        return code
+
+    def request_stop(self) -> None:
+        """Begin an orderly shutdown (signal handler; idempotent)."""
+        if not self.stop_requested.is_set():
+            _LOGGER.info("stop requested: stopping pan/tilt, publishing offline, flushing")
+            self.notifier.stopping("shutting down")
+            # The bound on shutdown: whatever hangs (a dead broker, a stuck port), exit anyway.
+            asyncio.get_running_loop().call_later(SHUTDOWN_TIMEOUT_S, _force_exit)
+        self.stop_requested.set()
+        self._wake.set()
+
+    async def _run(self) -> None:
+        cfg = self.config
+        try:
+            lens = Lens.from_toml(cfg.lens.file)
+        except LensError as exc:
+            raise DaemonError(f"lens.file: {exc}") from exc
+        try:
+            async with contextlib.AsyncExitStack() as stack:
+                await self._start_broker(stack)
+                port = await self._start_camera_transport(stack)
+                source, exposure_s, focus_speed = await self._start_source(stack, lens)
+                self._sched_config = self._scheduler_config(lens, source, exposure_s, focus_speed)
+                self.scheduler = Scheduler(self._sched_config)
+                self.scheduler.set_track_focus(lens.counts_for_depth(INITIAL_FOCUS_DEPTH_M))
+                log = JsonlLog(
+                    cfg.log.dir, max_bytes=cfg.log.max_bytes, backup_count=cfg.log.backup_count
+                )
+                log.start()
+                self._parts.log = log
+                stack.push_async_callback(self._close_log)
+                self.publisher = Publisher(
+                    PublisherSettings.from_config(cfg.mqtt),
+                    self.topics,
+                    on_command=self._on_command,
+                )
+                pipeline = Pipeline(self._pipeline_config(), lens)
+                if cfg.target.roi is not None:
+                    pipeline.acquire_roi(*cfg.target.roi)
+                loop = asyncio.get_running_loop()
+                estimator = EstimatorThread(
+                    pipeline, lambda r: loop.call_soon_threadsafe(self._on_result, r)
+                )
+                estimator.start()
+                self._parts.estimator = estimator
+                stack.callback(estimator.stop)
+                await self._serve(port, source, lens)
+        except TimeoutError as exc:
+            raise DaemonError(f"start-up timed out: {exc or 'no answer'}") from exc
+
+    async def _serve(self, port: str, source: FrameSource, lens: Lens) -> None:
+        cfg = self.config
+        assert self.publisher is not None
+        publisher = self.publisher
+        link = ViscaLink(port, cfg.camera.baudrate)
+        self._parts.link = link
+        async with asyncio.TaskGroup() as group:
+            pub_task = group.create_task(publisher.run(), name="mqtt")
+            try:
+                async with link:
+                    camera = Camera(link, cfg.camera.address, profile_for(cfg.camera.model))
+                    await self._initialize_camera(camera, lens)
+                    self.camera = camera
+                    await source.start()
+                    tasks = [
+                        group.create_task(self._capture_loop(source), name="capture"),
+                        group.create_task(self._scheduler_loop(), name="scheduler"),
+                        group.create_task(self._focus_worker(camera), name="focus"),
+                        group.create_task(self._pan_tilt_worker(camera), name="pan-tilt"),
+                        group.create_task(self._results_loop(), name="results"),
+                        group.create_task(self._status_loop(), name="status"),
+                    ]
+                    await self._wait_for_stop()
+                    for task in tasks:
+                        task.cancel()
+                    await asyncio.gather(*tasks, return_exceptions=True)
+                    await self._shutdown_camera(camera)
+            finally:
+                await self._shutdown_publisher(publisher, pub_task)
+
+    async def _wait_for_stop(self) -> None:
+        if self.duration_s is None:
+            await self.stop_requested.wait()
+            return
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(self.duration_s):
+                await self.stop_requested.wait()
+        self.request_stop()
+
+    async def _shutdown_camera(self, camera: Camera) -> None:
+        try:
+            async with asyncio.timeout(PAN_TILT_STOP_TIMEOUT_S):
+                await camera.pan_tilt_stop()
+            _LOGGER.info("pan/tilt stopped")
+        except (ViscaError, TimeoutError) as exc:
+            _LOGGER.warning("could not stop pan/tilt at shutdown: %s", exc)
+        await self._source_close()
+
+    async def _source_close(self) -> None:
+        source = self._parts.source
+        if source is not None:
+            with contextlib.suppress(FrameSourceError, TimeoutError):
+                async with asyncio.timeout(PAN_TILT_STOP_TIMEOUT_S):
+                    await source.close()
+
+    async def _shutdown_publisher(self, publisher: Publisher, task: asyncio.Task[None]) -> None:
+        publisher.publish(publisher.status_payload("offline", "stopped"))
+        await publisher.stop()
+        if not task.done():
+            task.cancel()
+
+    async def _close_log(self) -> None:
+        log = self._parts.log
+        if log is not None and not await log.aclose():
+            _LOGGER.error("JSONL log did not flush in time; the last records may be missing")
+
+    # -- start-up pieces ------------------------------------------------------------------------
+    async def _start_broker(self, stack: contextlib.AsyncExitStack) -> None:
+        endpoint = self.config.mqtt.endpoint
+        if not endpoint.embedded:
+            return
+        from dffd.daemon.broker import BrokerStartError, EmbeddedBroker
+
+        broker = EmbeddedBroker(endpoint.port, endpoint.host)
+        try:
+            await stack.enter_async_context(broker)
+        except BrokerStartError as exc:
+            raise DaemonError(str(exc)) from exc
+        self._parts.broker = broker
+
+    async def _start_camera_transport(self, stack: contextlib.AsyncExitStack) -> str:
+        cfg = self.config
+        if cfg.camera.driver == "visca":
+            assert cfg.camera.port is not None  # validated by the config
+            return cfg.camera.port
+        from drivers.sim.device import DeviceConfig
+        from drivers.sim.server import SimCameraServer
+
+        if cfg.sim.visca_transport == "in-process":
+            _LOGGER.warning(
+                "sim.visca_transport = 'in-process' is not wired into the daemon yet; "
+                "serving the simulated camera on a pty instead"
+            )
+        sim_cfg = self._sim_camera_config()
+        from drivers.sim.source import camera_state_for
+
+        state = camera_state_for(sim_cfg)
+        device = DeviceConfig(baud=cfg.camera.baudrate, pace=True)
+        server = SimCameraServer(device, state=state)
+        await stack.enter_async_context(server)
+        self._parts.sim_server = server
+        self._sim_state = state
+        self._sim_device = device
+        self._sim_cfg = sim_cfg
+        _LOGGER.info("simulated camera on %s", server.path)
+        return str(server.path)
+
+    def _sim_camera_config(self) -> Any:
+        from drivers.sim.config import SimConfigError, load_sim_camera_config, with_overrides
+
+        cfg = self.config
+        path = cfg.sim.camera_config or DEFAULT_SIM_CAMERA_FILE
+        try:
+            base = load_sim_camera_config(path)
+            overrides: dict[str, Any] = {
+                "seed": cfg.sim.seed,
+                "world.trajectory": {**SCENARIO_WORLDS[cfg.sim.scenario], "seed": cfg.sim.seed},
+                "capture.fps": cfg.capture.fps,
+            }
+            return with_overrides(base, overrides)
+        except SimConfigError as exc:
+            raise DaemonError(f"sim.camera_config: {exc}") from exc
+
+    async def _start_source(
+        self, stack: contextlib.AsyncExitStack, lens: Lens
+    ) -> tuple[FrameSource, float | None, float]:
+        cfg = self.config
+        if cfg.camera.driver == "sim" or cfg.capture.source == "sim":
+            if cfg.camera.driver != "sim":
+                raise DaemonError(
+                    "capture.source = 'sim' needs camera.driver = 'sim' (the simulator renders "
+                    "what its own camera sees); set capture.source = 'v4l2' for a real camera"
+                )
+            from drivers.sim.source import SimFrameSource
+
+            sim_source = SimFrameSource.from_config(self._sim_cfg, self._sim_state)
+            self._parts.source = sim_source
+            self._parts.truth_for = sim_source.truth_for
+            stack.push_async_callback(self._source_close)
+            return (
+                sim_source,
+                self._sim_cfg.capture.exposure_s,
+                self._sim_device.focus_speed_counts_s,
+            )
+        source = _open_capture(cfg)
+        self._parts.source = source
+        stack.push_async_callback(self._source_close)
+        profile = profile_for(cfg.camera.model)
+        lo, hi = profile.focus_range
+        return source, None, (hi - lo) / profile.focus_full_travel_s
+
+    def _scheduler_config(
+        self, lens: Lens, source: FrameSource, exposure_s: float | None, focus_speed: float
+    ) -> SchedulerConfig:
+        cfg = self.config
+        sc = cfg.scheduler
+        fps = source.fps
+        exposure = None if exposure_s is None else min(exposure_s, 1.0 / fps)
+        sigma = sc.sigma_threshold_m if sc.burst_policy == "sigma" else None
+        deadband = pixel_offset_to_deg(
+            sc.pan_tilt_deadband_px, lens.focal_length_mm, lens.pixel_pitch_mm
+        )
+        return SchedulerConfig(
+            fps=fps,
+            exposure_s=exposure,
+            capture_latency_frames=math.ceil(cfg.capture.latency_frames),
+            burst_every_frames=sc.burst_every_n_frames,
+            sigma_trigger_m=sigma,
+            focus_speed_counts_per_s=focus_speed,
+            baudrate=cfg.camera.baudrate,
+            focal_length_mm=lens.focal_length_mm,
+            pixel_pitch_mm=lens.pixel_pitch_mm,
+            frame_size=source.frame_size,
+            pan_tilt_mode="drive" if sc.pan_tilt_kp_per_s > 0 else "off",
+            pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
+            pan_tilt_deadband_deg=deadband,
+            pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
+        )
+
+    def _pipeline_config(self) -> PipelineConfig:
+        est = self.config.estimators
+        return PipelineConfig(
+            best=est.best,
+            known_size_m=self.config.target.known_size_m,
+            cf2_sigma_psi=est.sigma_psi,
+            cf2_sigma_beta=est.sigma_beta,
+            cf2_sigma_z=est.sigma_z,
+            rho_min=est.lpv_rho_min_per_s,
+            rho_max=est.lpv_rho_max_per_s,
+        )
+
+    async def _initialize_camera(self, camera: Camera, lens: Lens) -> None:
+        try:
+            async with asyncio.timeout(CAMERA_INIT_TIMEOUT_S):
+                await camera.initialize()
+                zoom = self.config.lens.zoom_counts
+                if zoom is None:
+                    zoom = lens.zoom_counts
+                if zoom is not None:
+                    await camera.zoom_direct(zoom)
+                pan, tilt = await camera.pan_tilt_position()
+        except (ViscaError, TimeoutError) as exc:
+            raise DaemonError(
+                f"camera on {camera.link.url} did not initialise: {exc}; check camera.port, "
+                "camera.baudrate, the cable and that the camera is powered"
+            ) from exc
+        assert self.scheduler is not None
+        self.scheduler.on_pan_tilt_position(time.monotonic(), pan, tilt)
+
+    # -- tasks ---------------------------------------------------------------------------------
+    async def _capture_loop(self, source: FrameSource) -> None:
+        sched = self.scheduler
+        estimator = self._parts.estimator
+        assert sched is not None
+        assert estimator is not None
+        stalled = False
+        while True:
+            try:
+                async with asyncio.timeout(FRAME_TIMEOUT_S):
+                    frame = await source.next_frame()
+            except TimeoutError:
+                (_LOGGER.debug if stalled else _LOGGER.warning)(
+                    "no frame for %.1f s; capture stalled (watchdog pings paused)",
+                    FRAME_TIMEOUT_S,
+                )
+                stalled = True
+                continue
+            stalled = False
+            now = time.monotonic()
+            self._last_frame_mono = now
+            self.frames.add(now)
+            tag = sched.on_frame(frame.index, frame.t)
+            estimator.submit(frame, tag)
+            self._wake.set()
+            self._publish_truth(frame)
+
+    def _publish_truth(self, frame: Frame) -> None:
+        truth_for = self._parts.truth_for
+        if truth_for is None or not self.config.sim.publish_truth:
+            return
+        truth = truth_for(frame.index)
+        if truth is None:
+            return
+        self._last_truth_z = float(truth.z_m)
+        assert self.publisher is not None
+        self.publisher.publish(
+            models.Truth(
+                t=models.wall_time(),
+                t_mono=frame.t,
+                z_m=float(truth.z_m),
+                position_m=_vec(truth.position_world_m) or (0.0, 0.0, 0.0),
+                size_m=float(truth.size_m) if truth.size_m > 0 else None,
+            )
+        )
+
+    async def _scheduler_loop(self) -> None:
+        sched = self.scheduler
+        assert sched is not None
+        while True:
+            now = time.monotonic()
+            for action in sched.next_actions(now):
+                _LOGGER.debug("action at %.4f: %r", now, action)
+                focus = isinstance(action, FocusMove | FocusInquiry)
+                queue = self._focus_q if focus else self._pt_q
+                if queue.full():  # cannot happen with one action in flight; never block here
+                    _LOGGER.warning("action queue full; dropping %r", action)
+                    continue
+                queue.put_nowait(action)
+            wake = sched.next_wakeup()
+            delay = SCHEDULER_IDLE_S if wake is None else min(SCHEDULER_IDLE_S, wake - now)
+            self._wake.clear()
+            if delay > 0:
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(delay):
+                        await self._wake.wait()
+
+    async def _focus_worker(self, camera: Camera) -> None:
+        sched = self.scheduler
+        assert sched is not None
+        while True:
+            action = await self._focus_q.get()
+            try:
+                if isinstance(action, FocusMove):
+                    await camera.focus_direct(action.counts)
+                    sched.on_focus_completed(action.move_id, time.monotonic())
+                elif isinstance(action, FocusInquiry):
+                    counts = await camera.focus_position()
+                    sched.on_focus_position(time.monotonic(), counts)
+            except (ViscaError, TimeoutError, ValueError) as exc:
+                _LOGGER.warning("focus action %r failed: %s", action, exc)
+                if isinstance(action, FocusMove):
+                    sched.on_focus_failed(action.move_id, time.monotonic())
+                else:
+                    sched.on_focus_inquiry_failed(time.monotonic())
+            self._wake.set()
+
+    async def _pan_tilt_worker(self, camera: Camera) -> None:
+        sched = self.scheduler
+        assert sched is not None
+        while True:
+            action = await self._pt_q.get()
+            try:
+                if isinstance(action, PanTiltDrive):
+                    await camera.pan_tilt_drive(action.pan_rate_deg_s, action.tilt_rate_deg_s)
+                elif isinstance(action, PanTiltAbsolute):
+                    await camera.pan_tilt_absolute(action.pan_deg, action.tilt_deg)
+                elif isinstance(action, PanTiltStop):
+                    await camera.pan_tilt_stop()
+                elif isinstance(action, PanTiltInquiry):
+                    pan, tilt = await camera.pan_tilt_position()
+                    sched.on_pan_tilt_position(time.monotonic(), pan, tilt)
+                sched.on_pan_tilt_done(time.monotonic())
+            except (ViscaError, TimeoutError, ValueError) as exc:
+                _LOGGER.debug("pan/tilt action %r failed: %s", action, exc)
+                sched.on_pan_tilt_failed(time.monotonic())
+            self._wake.set()
+
+    def _on_result(self, result: EstimatorResult) -> None:
+        """On the loop (via call_soon_threadsafe): queue a result, dropping the oldest."""
+        if self._results.full():
+            self._results.get_nowait()
+            self.results_dropped += 1
+        self._results.put_nowait(result)
+
+    async def _results_loop(self) -> None:
+        sched = self.scheduler
+        log = self._parts.log
+        publisher = self.publisher
+        assert sched is not None
+        assert log is not None
+        assert publisher is not None
+        while True:
+            result = await self._results.get()
+            now = time.monotonic()
+            out = result.output
+            self._state = out.state
+            if out.measurement is not None:
+                payload_m = self._measurement_payload(out.measurement)
+                self.measurements.add(now)
+                if out.measurement.accepted:
+                    self.bursts_accepted += 1
+                else:
+                    self.bursts_rejected += 1
+                log.append("measurement", payload_m)
+                publisher.publish(payload_m)
+            if out.estimate is not None:
+                payload_e = self._estimate_payload(out.estimate)
+                self.estimates.add(now)
+                self._last_depth = dict(payload_e.depth_m.model_dump())
+                self._last_size = payload_e.size_m
+                log.append("estimate", payload_e)
+                publisher.publish(payload_e)
+            if result.plan is not None:
+                self._spacing = max(1, (max(result.plan) - min(result.plan)) // 2)
+            sched.on_estimate(
+                result.t,
+                sigma_m=result.sigma_m,
+                plan=result.plan,
+                centroid_px=result.centroid_px,
+                pan_deg=result.tag.pan_deg,
+                tilt_deg=result.tag.tilt_deg,
+            )
+            self._wake.set()
+
+    async def _status_loop(self) -> None:
+        publisher = self.publisher
+        assert publisher is not None
+        while True:
+            now = time.monotonic()
+            flowing = self._frames_flowing(now)
+            if flowing and not self._ready_sent:
+                self.notifier.ready("camera initialised, frames flowing")
+                self._ready_sent = True
+                _LOGGER.info("ready: camera initialised and frames flowing")
+            if flowing:
+                self.notifier.watchdog()
+            status = self.status_payload(now)
+            publisher.publish(status)
+            self.console.update(self._snapshot(now, status))
+            await asyncio.sleep(STATUS_PERIOD_S)
+
+    # -- commands ------------------------------------------------------------------------------
+    async def _on_command(self, command: models.Command) -> dict[str, Any] | None:
+        sched = self.scheduler
+        estimator = self._parts.estimator
+        if sched is None or estimator is None:
+            raise CommandRejected("the daemon is still starting; retry in a few seconds")
+        if isinstance(command, models.Acquire):
+            x, y, w, h = command.roi
+            fw, fh = sched.config.frame_size
+            if x + w > fw or y + h > fh:
+                raise CommandRejected(
+                    f"roi {list(command.roi)} extends beyond the {fw}x{fh} frame; "
+                    "give [x, y, w, h] inside the image"
+                )
+            await self._core(lambda p: p.acquire_roi(x, y, w, h))
+            return {"roi": [x, y, w, h]}
+        if isinstance(command, models.Release):
+            await self._core(lambda p: p.release())
+            sched.cancel_bursts()
+            sched.stop_pan_tilt()
+            self._wake.set()
+            return None
+        if isinstance(command, models.SetKnownSize):
+            size = command.size_m
+            await self._core(lambda p: p.set_known_size(size))
+            return {"size_m": size}
+        if isinstance(command, models.Home):
+            camera = self.camera
+            if camera is None:
+                raise CommandRejected("camera not initialised yet; retry")
+            sched.stop_pan_tilt()
+            self._wake.set()
+            try:
+                await camera.home()
+            except ViscaError as exc:
+                raise CommandRejected(f"home failed: {exc}") from exc
+            sched.on_pan_tilt_failed(time.monotonic())  # re-anchor the model by inquiry
+            return None
+        if isinstance(command, models.SetBurstPolicy):
+            cfg = sched.config
+            every = command.every_n_frames or cfg.burst_every_frames
+            sigma = None
+            if command.policy == "sigma":
+                sigma = command.sigma_threshold_m or self.config.scheduler.sigma_threshold_m
+            sched.set_policy(every, sigma)
+            self._wake.set()
+            return {"policy": command.policy, "every_n_frames": every, "sigma_threshold_m": sigma}
+        raise CommandRejected(f"unsupported command {command!r}")
+
+    async def _core(self, command: Callable[[Pipeline], object]) -> None:
+        estimator = self._parts.estimator
+        assert estimator is not None
+
+        def wrapped(pipeline: Pipeline) -> dict[str, Any] | None:
+            command(pipeline)
+            return None
+
+        future = estimator.call(wrapped)
+        try:
+            async with asyncio.timeout(CORE_COMMAND_TIMEOUT_S):
+                await asyncio.wrap_future(future)
+        except ValueError as exc:
+            raise CommandRejected(str(exc)) from exc
+
+    # -- payloads --------------------------------------------------------------------------------
+    def _estimate_payload(self, est: CoreEstimate) -> models.Estimate:
+        self._estimate_seq += 1
+        d = est.depth_m
+        depth = models.DepthByEstimator(
+            measured=_fin(d.get("measured")),
+            cf1=_fin(d.get("cf1")),
+            cf2=_fin(d.get("cf2")),
+            lpv=_fin(d.get("lpv")),
+            kf=_fin(d.get("kf")),
+        )
+        best = est.best if est.best in ("lpv", "kf", "cf2", "cf1") else self.config.estimators.best
+        return models.Estimate(
+            seq=self._estimate_seq,
+            t=models.wall_time(),
+            t_mono=est.t,
+            state=est.state,
+            depth_m=depth,
+            best=best,
+            z_m=_fin(est.z_m),
+            sigma_m=_nonneg(est.sigma_m),
+            beta_m_s=_fin(est.beta_m_s),
+            size_m=_nonneg(est.size_m),
+            r_px=_nonneg(est.r_px),
+            rho_per_s=_fin(est.rho),
+            position_m=_vec(est.position_world_m),
+            velocity_m_s=_vec(est.velocity_world_m_s),
+            pan_deg=_fin(est.pan_deg) or 0.0,
+            tilt_deg=_fin(est.tilt_deg) or 0.0,
+            focus_counts=est.focus_counts if est.focus_counts and est.focus_counts >= 0 else None,
+        )
+
+    def _measurement_payload(self, m: CoreMeasurement) -> models.Measurement:
+        self._measurement_seq += 1
+        costs = [max(0.0, _fin(c) or 0.0) for c in m.costs]
+        return models.Measurement(
+            seq=self._measurement_seq,
+            burst=max(0, m.burst_id),
+            t=models.wall_time(),
+            t_mono=m.t,
+            focus_counts=[max(0, int(c)) for c in m.focus_counts],
+            v_mm=[_fin(v) or 0.0 for v in m.v_mm],
+            costs=costs,
+            fit=models.Fit(
+                alpha=_fin(m.alpha),
+                v_mm=_fin(m.v_hat_mm),
+                residual=_nonneg(m.residual),
+                accepted=m.accepted,
+                reason=m.reason or None,
+            ),
+            z_m=_fin(m.z_m),
+            sigma_m=_nonneg(m.sigma_m),
+        )
+
+    def status_payload(self, now: float) -> models.Status:
+        """The retained ``…/status`` payload now."""
+        publisher = self.publisher
+        assert publisher is not None
+        stats = publisher.stats()
+        limit = self.depth_limit_hz()
+        return models.Status(
+            availability="online",
+            t=models.wall_time(),
+            t_mono=now,
+            state=self._state,  # type: ignore[arg-type]
+            camera=self.config.camera.name,
+            rates=models.Rates(
+                frame_hz=self.frames.rate(now),
+                estimate_hz=self.estimates.rate(now),
+                depth_hz=self.measurements.rate(now),
+                depth_limit_hz=limit,
+            ),
+            link=self._link_health(now),
+            mqtt=publisher.health(),
+            drops=models.Drops(
+                frames=self.frames_dropped(),
+                publish_queue=stats.queue_dropped,
+                backlog=stats.backlog_dropped,
+                log=self._parts.log.stats().dropped if self._parts.log else 0,
+            ),
+            version=__version__,
+        )
+
+    def depth_limit_hz(self) -> float | None:
+        """Theoretical depth-measurement rate of this configuration at the current spacing."""
+        if self._sched_config is None:
+            return None
+        cfg = self.scheduler.config if self.scheduler is not None else self._sched_config
+        return depth_rate_limit(cfg, self._spacing).depth_hz
+
+    def frames_dropped(self) -> int:
+        """Frames lost before the core: by the source, the estimator queue or the result queue."""
+        source = self._parts.source
+        estimator = self._parts.estimator
+        return (
+            (source.dropped_frames if source is not None else 0)
+            + (estimator.dropped if estimator is not None else 0)
+            + self.results_dropped
+        )
+
+    def _link_health(self, now: float) -> models.LinkHealth:
+        link = self._parts.link
+        if link is None:
+            return models.LinkHealth(connected=False)
+        h = link.health()
+        age = None if h.last_reply_monotonic is None else max(0.0, now - h.last_reply_monotonic)
+        return models.LinkHealth(
+            connected=h.connected,
+            bytes_in=h.bytes_in,
+            bytes_out=h.bytes_out,
+            replies=sum(h.replies.values()),
+            errors=sum(h.errors_by_code.values()),
+            timeouts=sum(h.timeouts.values()),
+            last_reply_age_s=age,
+            reconnects=h.reconnects,
+        )
+
+    def _frames_flowing(self, now: float) -> bool:
+        return self._last_frame_mono is not None and now - self._last_frame_mono < (
+            FRAMES_FLOWING_S
+        )
+
+    def _snapshot(self, now: float, status: models.Status) -> ConsoleSnapshot:
+        rates = status.rates
+        link = status.link
+        mqtt = status.mqtt
+        assert rates is not None
+        assert link is not None
+        assert mqtt is not None
+        sched = self.scheduler
+        pan, tilt = sched.pan_tilt_at(now) if sched is not None else (0.0, 0.0)
+        return ConsoleSnapshot(
+            camera=self.config.camera.name,
+            state=self._state,
+            uptime_s=now - self._t_start,
+            frame_hz=rates.frame_hz,
+            estimate_hz=rates.estimate_hz,
+            depth_hz=rates.depth_hz,
+            depth_limit_hz=rates.depth_limit_hz,
+            link_connected=link.connected,
+            link_timeouts=link.timeouts,
+            link_errors=link.errors,
+            link_reconnects=link.reconnects,
+            mqtt_connected=mqtt.connected,
+            mqtt_backlog=mqtt.backlog,
+            frames_dropped=self.frames_dropped(),
+            bursts_accepted=self.bursts_accepted,
+            bursts_rejected=self.bursts_rejected,
+            roles=dict(sched.stats.frames) if sched is not None else {},
+            depth_m=self._last_depth,
+            best=self.config.estimators.best,
+            truth_z_m=self._last_truth_z,
+            size_m=self._last_size,
+            pan_deg=pan,
+            tilt_deg=tilt,
+        )
+
+
+# -- helpers -------------------------------------------------------------------------------------
+def _force_exit() -> None:
+    _LOGGER.error("shutdown did not finish within %.0f s; exiting now", SHUTDOWN_TIMEOUT_S)
+    logging.shutdown()
+    os._exit(EXIT_FAILURE)
+
+
+def _open_capture(config: DffdConfig) -> FrameSource:
+    """The OpenCV frame source of ``[capture]`` (drivers/capture.py)."""
+    try:
+        from drivers import capture  # type: ignore[attr-defined,unused-ignore]
+    except ImportError as exc:
+        raise DaemonError(
+            "capture.source = 'v4l2' needs drivers/capture.py, which is not installed here"
+        ) from exc
+    factory = getattr(capture, "from_config", None) or getattr(capture, "OpenCVFrameSource", None)
+    if factory is None:
+        raise DaemonError("drivers.capture has no from_config/OpenCVFrameSource to open a device")
+    source: FrameSource = factory(config.capture)
+    return source
+
+
+def _fin(value: float | None) -> float | None:
+    if value is None:
+        return None
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def _nonneg(value: float | None) -> float | None:
+    v = _fin(value)
+    return v if v is not None and v >= 0 else None
+
+
+def _vec(value: Any) -> tuple[float, float, float] | None:
+    if value is None:
+        return None
+    x, y, z = (float(c) for c in value)
+    if not all(math.isfinite(c) for c in (x, y, z)):
+        return None
+    return x, y, z
+
+
+__all__ = [
+    "CAMERA_INIT_TIMEOUT_S",
+    "SHUTDOWN_TIMEOUT_S",
+    "Daemon",
+    "DaemonError",
+    "EstimatorResult",
+    "EstimatorThread",
+    "RateMeter",
+    "configure_parser",
+    "run",
+]
