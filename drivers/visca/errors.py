@@ -120,7 +120,3 @@ class ViscaNetworkChangeError(ViscaError):
 
 class LinkBusyError(ViscaError):
     """Too many requests are queued for one camera; the caller is issuing faster than it runs."""
-
-
-class ViscaProtocolError(ViscaError):
-    """A reply made no sense for the request (e.g. malformed inquiry data)."""
