@@ -52,6 +52,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--duration", type=float, default=None, help="override the per-case duration (s)"
     )
     run.add_argument("--seed", type=int, action="append", default=None, help="override the seeds")
+    run.add_argument(
+        "--set",
+        dest="settings",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="experiment override: scheduler.KEY=V, estimator.KEY=V (dffd dataclass fields) or "
+        "camera.SECTION.KEY=V (simulator config); recorded in report.json",
+    )
     run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     run.add_argument("--no-baselines", action="store_true", help="skip the ArUco/full-sweep passes")
     run.add_argument("--config", type=Path, default=None, help="daemon config (real-time modes)")
@@ -104,6 +113,8 @@ def _run(args: argparse.Namespace) -> int:
         scenario = scenario.shortened(args.duration)
     if args.seed:
         scenario = scenario.model_copy(update={"seeds": tuple(args.seed)})
+    if args.settings:
+        scenario = scenario.with_settings(args.settings)
     out = args.out or DEFAULT_OUT / scenario.name
     lab = any(x is not None for x in (args.camera, args.video, args.truth))
     if lab and args.fast:

@@ -33,6 +33,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.core.pipeline import Pipeline, PipelineConfig, PipelineOutput
 from dffd.core.types import FrameTag
@@ -43,9 +44,11 @@ from dffd.scheduler import (
     Scheduler,
     SchedulerConfig,
     depth_rate_limit,
+    pixel_offset_to_deg,
 )
 from drivers.frames import Frame
 from drivers.sim.device import ViscaDevice
+from drivers.sim.source import FrameTruth
 from hil.baselines import (
     ArucoBaseline,
     find_blob,
@@ -111,28 +114,50 @@ class FrameSink:
         raise NotImplementedError
 
 
+def daemon_config() -> DffdConfig:
+    """The daemon's configuration as ``dffd run`` would resolve it with no file (env applies)."""
+    return DffdConfig()
+
+
 def scheduler_config(
-    session: SimSession, lens: Lens, burst_every_frames: int, overrides: dict[str, Any]
+    session: SimSession, lens: Lens, config: DffdConfig, overrides: dict[str, Any]
 ) -> SchedulerConfig:
-    """The scheduler configuration the daemon would build for this camera (+ overrides)."""
+    """The scheduler configuration, built as ``dffd.daemon.app`` builds it (+ overrides)."""
+    sc = config.scheduler
     base = SchedulerConfig(
         fps=session.fps,
-        exposure_s=session.exposure_s,
-        capture_latency_frames=math.ceil(session.latency_frames),
-        burst_every_frames=burst_every_frames,
+        exposure_s=min(session.exposure_s, 1.0 / session.fps),
+        capture_latency_frames=math.ceil(config.capture.latency_frames),
+        burst_every_frames=sc.burst_every_n_frames,
+        sigma_trigger_m=sc.sigma_threshold_m if sc.burst_policy == "sigma" else None,
         focus_speed_counts_per_s=session.device_config.focus_speed_counts_s,
         baudrate=session.device_config.baud,
-        command_slot_s=session.device_config.field_period_s,
         focal_length_mm=lens.focal_length_mm,
         pixel_pitch_mm=lens.pixel_pitch_mm,
         frame_size=session.frame_size,
+        pan_tilt_mode="drive" if sc.pan_tilt_kp_per_s > 0 else "off",
+        pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
+        pan_tilt_deadband_deg=pixel_offset_to_deg(
+            sc.pan_tilt_deadband_px, lens.focal_length_mm, lens.pixel_pitch_mm
+        ),
+        pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
     )
     return dataclasses.replace(base, **overrides) if overrides else base
 
 
-def pipeline_config(scenario: Scenario) -> PipelineConfig:
-    """The estimator configuration: the daemon's defaults plus what the scenario states."""
-    base = PipelineConfig(known_size_m=scenario.target.known_size_m, settle_s=scenario.settle_s)
+def pipeline_config(scenario: Scenario, config: DffdConfig) -> PipelineConfig:
+    """The estimator configuration as the daemon builds it; the scenario's known size for CF1."""
+    est = config.estimators
+    base = PipelineConfig(
+        best=est.best,
+        known_size_m=scenario.target.known_size_m,
+        cf2_sigma_psi=est.sigma_psi,
+        cf2_sigma_beta=est.sigma_beta,
+        cf2_sigma_z=est.sigma_z,
+        rho_min=est.lpv_rho_min_per_s,
+        rho_max=est.lpv_rho_max_per_s,
+        settle_s=scenario.settle_s,
+    )
     return dataclasses.replace(base, **scenario.estimator) if scenario.estimator else base
 
 
@@ -156,11 +181,9 @@ class _Runner:
         self.lens = Lens.from_toml(session.lens_path)
         self.device = ViscaDevice(session.state, session.device_config)
         self.link = VirtualLink(self.device)
-        self.pipeline = Pipeline(pipeline_config(scenario), self.lens)
-        from dffd.config import SchedulerConfig as DaemonSchedulerConfig
-
-        every = DaemonSchedulerConfig().burst_every_n_frames
-        self.sched_config = scheduler_config(session, self.lens, every, scenario.scheduler)
+        dcfg = daemon_config()
+        self.pipeline = Pipeline(pipeline_config(scenario, dcfg), self.lens)
+        self.sched_config = scheduler_config(session, self.lens, dcfg, scenario.scheduler)
         self.scheduler = Scheduler(self.sched_config)
         self.scheduler.set_track_focus(self.lens.counts_for_depth(INITIAL_FOCUS_DEPTH_M))
         mode = "fast" if policy == "dffd" else f"fast-{policy}"
@@ -293,7 +316,7 @@ class _Runner:
         c0 = time.thread_time()
         out = self.pipeline.process(frame, tag)
         res.core_cpu_s.append(time.thread_time() - c0)
-        self._score(out, frame, tag, truth_z)
+        self._score(out, frame, tag, truth)
         fb = self._feedback(out, tag)
         self.scheduler.on_estimate(
             t_mid,
@@ -305,21 +328,20 @@ class _Runner:
         )
 
     def _feedback(self, out: PipelineOutput, tag: FrameTag) -> _Feedback:
+        # Exactly what dffd.daemon.app's estimator thread reports to the scheduler.
         obs = out.observation
-        # The scheduler stops pan/tilt on None ("lost"): a blurred frame the tracker did not
-        # trust still carries its (translation-tracked) centroid while the core is tracking.
-        tracking = self.pipeline.state == "tracking"
-        centroid = obs.centroid if obs is not None and tracking else None
-        if not tracking:
-            return _Feedback(None, None, centroid)
-        pred = self.pipeline.predicted_depth()
-        here = self.scheduler.focus_counts
-        if here is None:
-            here = tag.focus_counts if tag.focus_counts is not None else 0
-        plan = self.pipeline.plan_burst(here)
-        return _Feedback(None if pred is None else pred[1], plan, centroid)
+        centroid = obs.centroid if obs is not None and obs.ok else None
+        sigma: float | None = None
+        plan: tuple[int, int, int] | None = None
+        if self.pipeline.state == "tracking":
+            pred = self.pipeline.predicted_depth()
+            sigma = None if pred is None else pred[1]
+            if tag.focus_counts is not None:
+                plan = self.pipeline.plan_burst(tag.focus_counts)
+        return _Feedback(sigma, plan, centroid)
 
-    def _score(self, out: PipelineOutput, frame: Frame, tag: FrameTag, truth_z: float) -> None:
+    def _score(self, out: PipelineOutput, frame: Frame, tag: FrameTag, truth: FrameTruth) -> None:
+        truth_z = truth.z_m
         res = self.result
         size = self.scenario.target.size_m
         m = out.measurement
@@ -348,6 +370,8 @@ class _Runner:
         est = out.estimate
         if est is None:
             return
+        res.r_px.add(frame.t, est.r_px, truth.r_px)
+        res.truth_depth.add(frame.t, truth_z, truth_z)
         for name, z in est.depth_m.items():
             if name == "measured" or z is None:
                 continue

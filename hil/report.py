@@ -9,6 +9,7 @@ settling time).
 from __future__ import annotations
 
 import datetime as dt
+import itertools
 import json
 import logging
 import math
@@ -27,6 +28,8 @@ REPORT_SCHEMA = 1
 BASELINE_KEYS = ("known_size", "aruco", "full_sweep")
 # Parabola panels drawn from the sample bursts (spread over the run).
 SAMPLE_BURSTS = 6
+# Depth bins (m) of the diagnostics block.
+DEPTH_BINS_M = (0.0, 3.0, 5.0, 7.0, 9.0, 11.0)
 # git describe must answer at once; a missing git only drops the "git" field.
 GIT_TIMEOUT_S = 5.0
 
@@ -135,12 +138,54 @@ def build_report(
         "latency": latency,
         "cpu": cpu,
         "per_case": _per_case(results),
+        "diagnostics": diagnostics(results),
         "notes": sorted({n for r in results for n in r.notes}),
     }
     report["goals"] = evaluate_goals(report, thresholds or {})
     if bench is not None:
         report["bench"] = bench
     return report
+
+
+def diagnostics(results: Sequence[RunResult]) -> dict[str, Any]:
+    """Error spread by true depth (steady state): where the error comes from.
+
+    ``r_rel_err_std``: std of (tracked r − true r)/true r on track frames — the size channel's
+    noise, which every fused estimate inherits as ``z · δr/r``. ``<name>_err_std_m``: std of each
+    estimator's error in the same depth bin; ``n``: track frames in the bin.
+    """
+    edges = DEPTH_BINS_M
+    rows: dict[str, dict[str, Any]] = {}
+    for lo, hi in itertools.pairwise(edges):
+        key = f"{lo:g}-{hi:g}m"
+        row: dict[str, Any] = {}
+        rel, n = [], 0
+        for res in results:
+            t, r, r_true = res.r_px.arrays()
+            _, z, _ = res.truth_depth.arrays()
+            sel = (z >= lo) & (z < hi) & ((t - res.t_start) >= res.settle_s)
+            n += int(sel.sum())
+            rel.append(((r - r_true) / r_true)[sel])
+        rr = np.concatenate(rel) if rel else np.zeros(0)
+        rr = rr[np.isfinite(rr)]
+        row["n"] = n
+        row["r_rel_bias"] = _f(rr.mean()) if rr.size else None
+        row["r_rel_err_std"] = _f(rr.std()) if rr.size else None
+        for name in sorted({k for r in results for k in r.estimates}):
+            errs = []
+            for res in results:
+                s = res.estimates.get(name)
+                if s is None or not len(s):
+                    continue
+                t, v, truth = s.arrays()
+                sel = (truth >= lo) & (truth < hi) & ((t - res.t_start) >= res.settle_s)
+                errs.append((v - truth)[sel])
+            e = np.concatenate(errs) if errs else np.zeros(0)
+            e = e[np.isfinite(e)]
+            row[f"{name}_err_std_m"] = _f(e.std()) if e.size > 1 else None
+        if n or any(v is not None for k, v in row.items() if k.endswith("_m")):
+            rows[key] = row
+    return {"by_true_depth": rows}
 
 
 def evaluate_goals(report: dict[str, Any], thresholds: dict[str, float | None]) -> list[Any]:

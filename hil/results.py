@@ -75,6 +75,8 @@ class RunResult:
     baselines: dict[str, Series] = field(default_factory=dict)
     beta: Series = field(default_factory=Series)  # CF2's bias estimate β̂ (m/s)
     size: Series = field(default_factory=Series)  # R̂ (m), truth = the real size
+    r_px: Series = field(default_factory=Series)  # tracked r on track frames, truth r from the sim
+    truth_depth: Series = field(default_factory=Series)  # true z per track frame (for binning)
     bursts: list[BurstRecord] = field(default_factory=list)
     frames: int = 0
     frames_by_role: dict[str, int] = field(default_factory=dict)
