@@ -158,6 +158,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="no live console view; log a status line every second instead",
     )
     parser.add_argument(
+        "--sim-faults",
+        metavar="SPEC",
+        default="",
+        help="seeded serial faults in the simulated camera (tests, demos), e.g. "
+        '"seed=3,drop=0.01,lose_completion=0.05" (keys as dffd sim-camera --faults)',
+    )
+    parser.add_argument(
         "--duration",
         type=float,
         metavar="SECONDS",
@@ -182,7 +189,14 @@ def run(args: argparse.Namespace) -> int:
         # Without a TTY the status lines are the console; make sure they are visible.
         logging.getLogger("dffd.daemon.console").setLevel(logging.INFO)
         logging.getLogger().setLevel(logging.INFO)
-    daemon = Daemon(config, live_console=live, duration_s=args.duration)
+    from drivers.sim.faults import Faults, FaultSpecError
+
+    try:
+        faults = Faults(args.sim_faults) if args.sim_faults else None
+    except FaultSpecError as exc:
+        print(f"dffd run: --sim-faults: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    daemon = Daemon(config, live_console=live, duration_s=args.duration, sim_faults=faults)
     try:
         return asyncio.run(daemon.main())
     except KeyboardInterrupt:
@@ -351,9 +365,15 @@ class Daemon:
     """One dffd service instance; :meth:`main` runs it to completion."""
 
     def __init__(
-        self, config: DffdConfig, *, live_console: bool = False, duration_s: float | None = None
+        self,
+        config: DffdConfig,
+        *,
+        live_console: bool = False,
+        duration_s: float | None = None,
+        sim_faults: Any = None,
     ) -> None:
         self.config = config
+        self.sim_faults = sim_faults
         self.duration_s = duration_s
         self.console = Console(live=live_console)
         self.notifier = Notifier()
@@ -384,6 +404,8 @@ class Daemon:
         self.scheduler: Scheduler | None = None
         self.publisher: Publisher | None = None
         self._sched_config: SchedulerConfig | None = None
+        self._zoom: int | None = None
+        self._focus_failures = 0
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def main(self) -> int:
@@ -555,7 +577,7 @@ class Daemon:
 
         state = camera_state_for(sim_cfg)
         device = DeviceConfig(baud=cfg.camera.baudrate, pace=True)
-        server = SimCameraServer(device, state=state)
+        server = SimCameraServer(device, state=state, faults=self.sim_faults)
         await stack.enter_async_context(server)
         self._parts.sim_server = server
         self._sim_state = state
@@ -665,6 +687,25 @@ class Daemon:
             ) from exc
         assert self.scheduler is not None
         self.scheduler.on_pan_tilt_position(time.monotonic(), pan, tilt)
+        self._zoom = zoom
+
+        async def after_reinit() -> None:
+            # The link came back (port reopened, Network Change, power cycle): the camera was
+            # re-initialised; its zoom may have reset and the focus and pan/tilt moved.
+            sched = self.scheduler
+            assert sched is not None
+            now = time.monotonic()
+            sched.invalidate_focus(now)
+            sched.on_pan_tilt_failed(now)  # re-anchor the pan/tilt model by inquiry
+            self._wake.set()
+            if self._zoom is not None:
+                try:
+                    await camera.zoom_direct(self._zoom)
+                except ViscaError as exc:
+                    _LOGGER.warning("could not restore the zoom after a reconnect: %s", exc)
+            _LOGGER.info("camera re-initialised: focus re-learnt by inquiry, zoom restored")
+
+        camera.link.add_reinit_callback(after_reinit)
 
     # -- tasks ---------------------------------------------------------------------------------
     async def _capture_loop(self, source: FrameSource) -> None:
@@ -745,8 +786,16 @@ class Daemon:
                 elif isinstance(action, FocusInquiry):
                     counts = await camera.focus_position()
                     sched.on_focus_position(time.monotonic(), counts)
+                if self._focus_failures:
+                    _LOGGER.info(
+                        "focus commands work again after %d failure(s)", self._focus_failures
+                    )
+                    self._focus_failures = 0
             except (ViscaError, TimeoutError, ValueError) as exc:
-                _LOGGER.warning("focus action %r failed: %s", action, exc)
+                # First failure of a run of failures at WARNING, the repeats at DEBUG.
+                level = logging.DEBUG if self._focus_failures else logging.WARNING
+                self._focus_failures += 1
+                _LOGGER.log(level, "focus action %r failed: %s", action, exc)
                 if isinstance(action, FocusMove):
                     sched.on_focus_failed(action.move_id, time.monotonic())
                 else:
