@@ -115,7 +115,9 @@ def find_blob(image: Gray) -> tuple[float, float, float] | None:
         mask = small < bg - BLOB_LEVEL * (bg - lo)
     if max(hi - bg, bg - lo) < 10.0:
         return None
-    n, _labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), 8)
+    n, _labels, stats, centroids = cv2.connectedComponentsWithStats(
+        mask.astype(np.uint8), connectivity=8
+    )
     if n <= 1:
         return None
     areas = stats[1:, cv2.CC_STAT_AREA]

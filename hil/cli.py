@@ -76,6 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
     bench.add_argument("--quick", action="store_true", help="shorter runs (smoke test)")
 
+    table = sub.add_parser("table", help="print reports as the README's markdown results table")
+    table.add_argument("reports", type=Path, nargs="+", help="report.json files or directories")
+
     compare = sub.add_parser("compare", help="compare two reports; exit 1 on a regression")
     compare.add_argument("a", type=Path, help="reference report.json (or its directory)")
     compare.add_argument("b", type=Path, help="new report.json (or its directory)")
@@ -93,6 +96,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from hil.compare import main as compare_main
 
             return compare_main(args.a, args.b)
+        if args.command == "table":
+            from hil.report import load_report, markdown_table
+
+            print(markdown_table([load_report(p) for p in args.reports]))
+            return EXIT_OK
         if args.command == "bench":
             from hil.benchmarks import run_bench
 

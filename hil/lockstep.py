@@ -29,7 +29,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import numpy as np
 
@@ -106,12 +106,11 @@ def run_session(
     return runner.run()
 
 
-class FrameSink:
+class FrameSink(Protocol):
     """Receives every frame with its tag and truth (``--record``); see :mod:`hil.runner`."""
 
     def add(self, frame: Frame, tag: FrameTag, truth_z_m: float) -> None:
         """Store one frame."""
-        raise NotImplementedError
 
 
 def daemon_config() -> DffdConfig:

@@ -177,7 +177,7 @@ async def _collect(  # noqa: PLR0917 - private helper of _session
             async for message in client.messages:
                 now = time.monotonic()
                 topic = message.topic.value
-                payload = json.loads(bytes(message.payload))  # type: ignore[arg-type]
+                payload = json.loads(bytes(message.payload))
                 if topic.endswith("/sim/truth"):
                     key = round(float(payload["t_mono"]), 4)
                     data.truth[key] = float(payload["z_m"])

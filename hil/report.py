@@ -303,6 +303,41 @@ def format_table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def markdown_table(reports: Sequence[dict[str, Any]]) -> str:
+    """One row per report: accuracy of z_m, the best estimator, CF2, LPV and the baselines (ss
+    std / bias in mm), depth rates and the goals passed — the README's results table."""
+    head = (
+        "| scenario | mode | z_m ss std | best (lpv) ss std | cf2 ss std | kf ss std | "
+        "known-size ss std | ArUco ss std | full-sweep ss std | depth Hz (limit) | "
+        "full-sweep Hz | goals |"
+    )
+    rows = [head, "|" + "---|" * 12]
+
+    def ss(block: dict[str, Any] | None) -> str:
+        if not block or block.get("ss_std_m") is None:
+            return "–"
+        bias = block.get("ss_bias_m")
+        b = f" ({bias * 1e3:+.0f})" if bias is not None else ""
+        return f"{block['ss_std_m'] * 1e3:.1f}{b}"
+
+    for r in reports:
+        est, base, rates = r["estimators"], r["baselines"], r["rates"]
+        goals = r.get("goals") or []
+        passed = sum(1 for g in goals if g["ok"] is True)
+        limit = rates.get("depth_limit_hz")
+        sweep = rates.get("full_sweep_depth_hz")
+        over = r.get("overrides") or {}
+        mode = r["mode"] + (" +set" if any(over.get(k) for k in over) else "")
+        rows.append(
+            f"| {r['scenario']} | {mode} | {ss(est.get('measured'))} | {ss(est.get(r['best']))} | "
+            f"{ss(est.get('cf2'))} | {ss(est.get('kf'))} | {ss(base.get('known_size'))} | "
+            f"{ss(base.get('aruco'))} | {ss(base.get('full_sweep'))} | "
+            f"{rates['depth_hz']:.2f} ({_num(limit, '{:.2f}')}) | {_num(sweep, '{:.2f}')} | "
+            f"{passed}/{len(goals)} |"
+        )
+    return "\n".join(rows)
+
+
 def write_plots(results: Sequence[RunResult], out_dir: Path) -> list[Path]:
     """Depth vs truth, error over time, β̂, R̂ and sample cost parabolas, one PNG each."""
     import matplotlib as mpl

@@ -103,11 +103,11 @@ class Scenario(_Model):
     duration_s: float = Field(gt=0.0, le=3600.0)  # per case
     settle_s: float = Field(5.0, ge=0.0)  # steady state starts this long after the start
     seeds: tuple[int, ...] = (1,)
-    target: TargetSpec = Field(default_factory=TargetSpec)
+    target: TargetSpec = Field(default_factory=lambda: TargetSpec.model_validate({}))
     trajectory: TrajectorySpec
-    camera: CameraSpec = Field(default_factory=CameraSpec)
-    baselines: BaselineSpec = Field(default_factory=BaselineSpec)
-    thresholds: ThresholdSpec = Field(default_factory=ThresholdSpec)
+    camera: CameraSpec = Field(default_factory=lambda: CameraSpec.model_validate({}))
+    baselines: BaselineSpec = Field(default_factory=lambda: BaselineSpec.model_validate({}))
+    thresholds: ThresholdSpec = Field(default_factory=lambda: ThresholdSpec.model_validate({}))
     cases: tuple[CaseSpec, ...] = ()
     # Overrides of dffd.scheduler.SchedulerConfig / dffd.core.pipeline.PipelineConfig fields for
     # experiments (default: none — the bench measures the product's defaults).
