@@ -45,6 +45,13 @@ class TrackerConfig:
     min_radius_px: float = 6.0
     max_radius_px: float = 220.0
     trim_fraction: float = 0.1  # trimmed mean of per-normal peaks for the focus cost
+    # Gauss-Newton passes per frame: search again along the normals of the updated contour while
+    # the last pass moved it by more than ``refine_px``. One pass is biased when the prediction is
+    # off by t px: along a normal the edge of a circle of radius a lies at n·t − (|t|² −
+    # (n·t)²)/(2a), so r shrinks by ~|t|²/(4a) — 1.6 px (7 %) for a 12 px pan/tilt jump at 23 px
+    # (measured on the reference simulator); after a second pass the residual t is sub-pixel.
+    max_passes: int = 3
+    refine_px: float = 0.3
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,6 +125,19 @@ class ContourTracker:
         predicted = self._points + self._velocity * dt
         relax = self.config.relax if motion != "translation" else 0.0
         obs = self._step(gray, predicted, motion, relax)
+        current = predicted
+        for _ in range(self.config.max_passes - 1):
+            if not obs.ok:
+                break
+            shift = obs.points.mean(axis=0) - current.mean(axis=0)
+            moved = float(np.hypot(shift[0], shift[1])) + abs(obs.r_px - radius_of(current))
+            if moved <= self.config.refine_px:
+                break
+            current = obs.points
+            again = self._step(gray, current, motion, relax)
+            if not again.ok:
+                break
+            obs = again
         if obs.ok:
             if dt > 0:
                 old = self._points.mean(axis=0)

@@ -262,10 +262,11 @@ class Pipeline:
             measurement = self._finish_burst()
         if not self._tracker.active and not self._try_acquire(frame):
             return PipelineOutput(self._state, None, measurement, None)
-        motion = "translation" if tag.role == "transit" or tag.focus_counts is None else (
-            self.config.motion
-        )
-        obs = self._tracker.update(frame.image, frame.t, motion)
+        # Every frame follows scale too (transit frames included): r is read on track frames
+        # only, but a contour frozen in size through a long focus travel (the first bursts span
+        # the working range: 40 transit frames) drifts out of the outlier gate and the target
+        # is lost mid-burst (measured on the reference simulator).
+        obs = self._tracker.update(frame.image, frame.t, self.config.motion)
         if self._tracker.lost:
             logger.info("target lost at frame %d (t=%.3f)", frame.index, frame.t)
             c = obs.centroid
