@@ -63,6 +63,11 @@ class PipelineConfig:
     # (chief ray; lenses whose image size "breathes" with focus)
     magnification: Literal["thin_lens", "pinhole"] = "pinhole"
     transport_measurements: bool = True
+    # Burst motion compensation: the target's sharp setting moves during a burst (~0.6 s; at
+    # 0.25 m/s and 8 m that is ~2 µm of v against ~0.6 µm of fit noise). The size ratio gives
+    # each frame's depth relative to the burst mid-time, z_i = z s(t_mid)/s(t_i), so every focus
+    # setting is shifted by v(z_i) − v(z) before the fit (docs/estimation.md).
+    compensate_burst_motion: bool = True
     # CF1 / CF2 (Lemma 1 from the noise densities)
     cf1_k: float = 1.0  # rad/s
     cf2_sigma_psi: float = 0.04  # m/s/√Hz
@@ -256,11 +261,11 @@ class Pipeline:
     def process(self, frame: Frame, tag: FrameTag) -> PipelineOutput:
         """Consume one frame and its tag."""
         measurement: Measurement | None = None
-        if tag.role == "track" or (
-            self._burst_id is not None and tag.burst is not None and tag.burst[0] != self._burst_id
-        ):
-            measurement = self._finish_burst()
+        if self._burst_id is not None and tag.burst is not None and tag.burst[0] != self._burst_id:
+            measurement = self._finish_burst(None)  # a new burst before any tracking frame
         if not self._tracker.active and not self._try_acquire(frame):
+            if tag.role == "track":
+                measurement = self._finish_burst(None) or measurement
             return PipelineOutput(self._state, None, measurement, None)
         # Every frame follows scale too (transit frames included): r is read on track frames
         # only, but a contour frozen in size through a long focus travel (the first bursts span
@@ -276,18 +281,18 @@ class Pipeline:
             self._discard_burst()
             return PipelineOutput(self._state, None, measurement, obs)
         if not obs.ok:
+            if tag.role == "track":
+                measurement = self._finish_burst(None) or measurement
             return PipelineOutput(self._state, None, measurement, obs)
         c = obs.centroid
         self._last_box = (c[0], c[1], obs.r_px)
         if tag.role == "burst" and tag.focus_counts is not None:
-            done = self._add_burst_sample(frame, tag, obs)
-            if done is not None:
-                measurement = done if measurement is None else measurement
+            self._add_burst_sample(frame, tag, obs)
             return PipelineOutput(self._state, None, measurement, obs)
         if tag.role != "track" or tag.focus_counts is None:
             return PipelineOutput(self._state, None, measurement, obs)
-        estimate = self._track_frame(frame, tag, obs)
-        return PipelineOutput(self._state, estimate, measurement, obs)
+        estimate, done = self._track_frame(frame, tag, obs)
+        return PipelineOutput(self._state, estimate, done or measurement, obs)
 
     # -- acquisition --------------------------------------------------------------------------
     def _try_acquire(self, frame: Frame) -> bool:
@@ -321,9 +326,9 @@ class Pipeline:
         return False
 
     # -- bursts ---------------------------------------------------------------------------------
-    def _add_burst_sample(
-        self, frame: Frame, tag: FrameTag, obs: BoundaryObservation
-    ) -> Measurement | None:
+    def _add_burst_sample(self, frame: Frame, tag: FrameTag, obs: BoundaryObservation) -> None:
+        # The fit waits for the next tracking frame: its size brackets the burst in time, so
+        # each burst frame's depth relative to the mid-time is interpolated, not extrapolated.
         assert tag.focus_counts is not None
         bid = tag.burst[0] if tag.burst is not None else -1
         if self._burst_id is None:
@@ -335,16 +340,14 @@ class Pipeline:
                              self.lens.v_from_counts(tag.focus_counts), cost[0], cost[1])
             )
         self._burst_frames += 1
-        if self._burst_frames >= self.config.burst_size:
-            return self._finish_burst()
-        return None
 
     def _discard_burst(self) -> None:
         self._burst = []
         self._burst_id = None
         self._burst_frames = 0
 
-    def _finish_burst(self) -> Measurement | None:
+    def _finish_burst(self, after: tuple[float, float] | None) -> Measurement | None:
+        """Fit the pending burst; ``after`` = (t, s) of the tracking frame that follows it."""
         if self._burst_id is None:
             return None
         samples, bid = self._burst, self._burst_id
@@ -352,8 +355,24 @@ class Pipeline:
         if not samples:
             return None
         t_mid = float(np.mean([s.t for s in samples]))
-        fit = fit_burst([s.v_mm for s in samples], [s.g for s in samples],
-                        [s.sigma_g for s in samples], self.lens, self.config.fit)
+        v = [s.v_mm for s in samples]
+        g = [s.g for s in samples]
+        sg = [s.sigma_g for s in samples]
+        fit = fit_burst(v, g, sg, self.lens, self.config.fit)
+        log_ratio = self._log_size_ratios([s.t for s in samples], t_mid, after)
+        if log_ratio is not None:
+            z_ref = fit.z_m if fit.accepted else self._depth(self.config.best)
+            for _ in range(2):  # the shift depends (weakly) on the depth it is computed at
+                if z_ref is None or not z_ref > 0:
+                    break
+                v_ref = self.lens.v_from_depth(z_ref)
+                # z_i = z s(t_mid)/s(t_i): the sharp setting at frame i is v(z_i)
+                v_comp = [
+                    vi - (self.lens.v_from_depth(z_ref * math.exp(-lr)) - v_ref)
+                    for vi, lr in zip(v, log_ratio, strict=True)
+                ]
+                fit = fit_burst(v_comp, g, sg, self.lens, self.config.fit)
+                z_ref = fit.z_m if fit.accepted else None
         if len(samples) < 3 and fit.accepted:  # pragma: no cover - fit_burst rejects these
             raise AssertionError("burst with fewer than three samples accepted")
         m = Measurement(
@@ -403,7 +422,9 @@ class Pipeline:
             return self._kf.z
         return self._last_measured
 
-    def _track_frame(self, frame: Frame, tag: FrameTag, obs: BoundaryObservation) -> Estimate:
+    def _track_frame(
+        self, frame: Frame, tag: FrameTag, obs: BoundaryObservation
+    ) -> tuple[Estimate, Measurement | None]:
         assert tag.focus_counts is not None
         cfg = self.config
         t = frame.t
@@ -419,6 +440,7 @@ class Pipeline:
         _, sdot = self._diff.update(s, dt)
         self._last_measured = None
         measured_t: float | None = None
+        done = self._finish_burst((t, s))
         if self._initialised and dt > 0:
             self._step_filters(dt, s, sdot, rho if rho is not None else 0.0, ratio)
         pending, self._pending = self._pending, None
@@ -450,9 +472,23 @@ class Pipeline:
                 self._cf2.reset(z0)
                 self._lpv.reset(z0)
         self._prev = (t, s)
-        return self._make_estimate(
+        estimate = self._make_estimate(
             frame, tag, obs, s=s, rho=rho, measured_t=measured_t, f_img=f_img
         )
+        return estimate, done
+
+    def _log_size_ratios(
+        self, times: list[float], t_mid: float, after: tuple[float, float] | None
+    ) -> list[float] | None:
+        """ln(s(t_i)/s(t_mid)) for burst frames, ln-interpolated between the tracking frames
+        around the burst; None when those are not both known (no compensation then)."""
+        if not self.config.compensate_burst_motion or after is None or self._prev is None:
+            return None
+        (t0, s0), (t1, s1) = self._prev, after
+        if not t0 < t1 or t1 - t0 > self.config.max_gap_s:
+            return None
+        rate = math.log(s1 / s0) / (t1 - t0)
+        return [rate * (ti - t_mid) for ti in times]
 
     def _size_at(self, t_b: float, t_now: float, s_now: float) -> float:
         """Normalised size at the burst mid-time, ln-interpolated between tracking frames."""
