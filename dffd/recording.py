@@ -99,9 +99,7 @@ class RecordingWriter:
         self._truth_xy: bool | None = None
         self._closed = False
 
-    def write(
-        self, frame: Frame, tag: FrameTag, truth: Sequence[float] | None = None
-    ) -> None:
+    def write(self, frame: Frame, tag: FrameTag, truth: Sequence[float] | None = None) -> None:
         """Append one frame; ``truth`` is ``(z_m,)`` or ``(z_m, x_m, y_m)`` at ``frame.t``."""
         if self._closed:
             raise RecordingError(f"recording {self.path} is closed")
@@ -109,16 +107,18 @@ class RecordingWriter:
         if not cv2.imwrite(str(self._frames_dir / name), frame.image):
             raise RecordingError(f"cannot write frame {name} to {self._frames_dir}")
         burst = tag.burst if tag.burst is not None else ("", "")
-        self._frames.writerow([
-            frame.index,
-            repr(float(frame.t)),
-            tag.role,
-            "" if tag.focus_counts is None else tag.focus_counts,
-            repr(float(tag.pan_deg)),
-            repr(float(tag.tilt_deg)),
-            f"frames/{name}",
-            *burst,
-        ])
+        self._frames.writerow(
+            [
+                frame.index,
+                repr(float(frame.t)),
+                tag.role,
+                "" if tag.focus_counts is None else tag.focus_counts,
+                repr(float(tag.pan_deg)),
+                repr(float(tag.tilt_deg)),
+                f"frames/{name}",
+                *burst,
+            ]
+        )
         if truth is not None:
             self._write_truth(frame.t, truth)
 
@@ -171,10 +171,10 @@ class RecordingReader:
         except (OSError, json.JSONDecodeError) as exc:
             raise RecordingError(f"cannot read {meta_path}: {exc}") from exc
         if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
-            raise RecordingError(f"{meta_path}: expected an object with \"schema\": {SCHEMA}")
+            raise RecordingError(f'{meta_path}: expected an object with "schema": {SCHEMA}')
         for key in ("fps", "frame_size", "lens"):
             if key not in meta:
-                raise RecordingError(f"{meta_path}: missing \"{key}\"")
+                raise RecordingError(f'{meta_path}: missing "{key}"')
         self.meta: dict[str, Any] = meta
         self.records: list[FrameRecord] = _read_frames(self.path / "frames.csv")
         self.truth: Truth | None = _read_truth(self.path / "truth.csv")

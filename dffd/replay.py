@@ -38,14 +38,28 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="estimates, one JSON per line")
     parser.add_argument("--summary", type=Path, help="write the error summary (needs truth.csv)")
     parser.add_argument("--plot", type=Path, help="write a PNG plot of depths and errors")
-    parser.add_argument("--settle", type=float, default=None,
-                        help="settling time (s) before steady-state statistics (default 5)")
-    parser.add_argument("--known-size", type=float, default=None, metavar="M",
-                        help="target size in metres (enables CF1)")
-    parser.add_argument("--best", choices=ESTIMATORS, default=None,
-                        help="estimator reported as best (default lpv)")
-    parser.add_argument("--roi", default=None, metavar="X,Y,W,H",
-                        help="acquire the target inside this ROI instead of automatically")
+    parser.add_argument(
+        "--settle",
+        type=float,
+        default=None,
+        help="settling time (s) before steady-state statistics (default 5)",
+    )
+    parser.add_argument(
+        "--known-size",
+        type=float,
+        default=None,
+        metavar="M",
+        help="target size in metres (enables CF1)",
+    )
+    parser.add_argument(
+        "--best", choices=ESTIMATORS, default=None, help="estimator reported as best (default lpv)"
+    )
+    parser.add_argument(
+        "--roi",
+        default=None,
+        metavar="X,Y,W,H",
+        help="acquire the target inside this ROI instead of automatically",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,15 +94,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"dffd replay: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     t0 = reader.records[0].t_s if reader.records else 0.0
-    print(f"{len(result.lines)} estimates from {len(reader)} frames -> {args.out}; "
-          f"bursts accepted {result.accepted}, rejected {result.rejected}")
+    print(
+        f"{len(result.lines)} estimates from {len(reader)} frames -> {args.out}; "
+        f"bursts accepted {result.accepted}, rejected {result.rejected}"
+    )
     if reader.truth is None:
         if args.summary is not None:
-            print("dffd replay: no truth.csv in the recording; no summary written",
-                  file=sys.stderr)
+            print("dffd replay: no truth.csv in the recording; no summary written", file=sys.stderr)
     else:
-        summary = summarize(result.lines, reader.truth, settle, t0,
-                            bursts=(result.accepted, result.rejected))
+        summary = summarize(
+            result.lines, reader.truth, settle, t0, bursts=(result.accepted, result.rejected)
+        )
         print(format_table(summary))
         if args.summary is not None:
             try:
@@ -170,8 +186,14 @@ def error_stats(
     ok = np.isfinite(e)
     tt, e = tt[ok], e[ok]
     if len(e) == 0:
-        return {"n": 0, "bias_m": None, "std_m": None, "rms_m": None, "ss_std_m": None,
-                "p95_abs_m": None}
+        return {
+            "n": 0,
+            "bias_m": None,
+            "std_m": None,
+            "rms_m": None,
+            "ss_std_m": None,
+            "p95_abs_m": None,
+        }
     ss = e[tt >= settle_until]
     return {
         "n": len(e),
@@ -199,8 +221,10 @@ def summarize(
             value = line["depth_m"].get(name)
             if value is None:
                 continue
-            t = line["measured_t_s"] if name == "measured" and line.get("measured_t_s") else (
-                line["t_s"]
+            t = (
+                line["measured_t_s"]
+                if name == "measured" and line.get("measured_t_s")
+                else (line["t_s"])
             )
             ts.append(float(t))
             vals.append(float(value))
@@ -221,13 +245,19 @@ def format_table(summary: dict[str, Any]) -> str:
     head = f"{'estimator':<10}{'n':>6}{'bias':>9}{'std':>9}{'rms':>9}{'ss std':>9}{'p95':>9}"
     rows = [head + "   (mm)"]
     for name, st in summary["estimators"].items():
+
         def mm(v: float | None) -> str:
             return "-" if v is None or not math.isfinite(v) else f"{1000 * v:.1f}"
-        rows.append(f"{name:<10}{st['n']:>6}{mm(st['bias_m']):>9}{mm(st['std_m']):>9}"
-                    f"{mm(st['rms_m']):>9}{mm(st['ss_std_m']):>9}{mm(st['p95_abs_m']):>9}")
+
+        rows.append(
+            f"{name:<10}{st['n']:>6}{mm(st['bias_m']):>9}{mm(st['std_m']):>9}"
+            f"{mm(st['rms_m']):>9}{mm(st['ss_std_m']):>9}{mm(st['p95_abs_m']):>9}"
+        )
     b = summary["bursts"]
-    rows.append(f"bursts accepted {b['accepted']}, rejected {b['rejected']}; "
-                f"steady state after {summary['settle_s']} s")
+    rows.append(
+        f"bursts accepted {b['accepted']}, rejected {b['rejected']}; "
+        f"steady state after {summary['settle_s']} s"
+    )
     return "\n".join(rows)
 
 
@@ -241,16 +271,25 @@ def plot(lines: Sequence[dict[str, Any]], truth: Truth | None, path: Path) -> No
     fig, (ax_z, ax_e) = plt.subplots(2, 1, sharex=True, figsize=(10, 7))
     if truth is not None:
         ax_z.plot(truth.t_s, truth.z_m, color="tab:blue", lw=1.5, label="truth")
-    colours = {"measured": "tab:red", "cf1": "gold", "cf2": "tab:green", "lpv": "black",
-               "kf": "tab:purple"}
+    colours = {
+        "measured": "tab:red",
+        "cf1": "gold",
+        "cf2": "tab:green",
+        "lpv": "black",
+        "kf": "tab:purple",
+    }
     for name in ESTIMATORS:
-        pts = [(ln["measured_t_s"] if name == "measured" else ln["t_s"], ln["depth_m"][name])
-               for ln in lines if ln["depth_m"].get(name) is not None]
+        pts = [
+            (ln["measured_t_s"] if name == "measured" else ln["t_s"], ln["depth_m"][name])
+            for ln in lines
+            if ln["depth_m"].get(name) is not None
+        ]
         if not pts:
             continue
         t, z = (np.asarray(v, dtype=np.float64) for v in zip(*pts, strict=True))
-        style: dict[str, Any] = {"ls": "none", "marker": ".", "ms": 3} if name == "measured" else {
-            "lw": 1.0}
+        style: dict[str, Any] = (
+            {"ls": "none", "marker": ".", "ms": 3} if name == "measured" else {"lw": 1.0}
+        )
         ax_z.plot(t, z, color=colours[name], label=name, **style)
         if truth is not None:
             ax_e.plot(t, 1000 * (z - truth.z_at(t)), color=colours[name], label=name, **style)

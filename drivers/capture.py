@@ -271,8 +271,9 @@ class OpenCVFrameSource:
         fps = float(capture.get(cv2.CAP_PROP_FPS))
         if width > 0 and height > 0:
             if s.width and s.height and (width, height) != (s.width, s.height) and not s.is_file:
-                log.warning("%r granted %dx%d instead of %dx%d", s.device, width, height,
-                            s.width, s.height)
+                log.warning(
+                    "%r granted %dx%d instead of %dx%d", s.device, width, height, s.width, s.height
+                )
             self._size = (width, height)
         if fps > 0:
             self._fps = fps

@@ -84,17 +84,21 @@ def discover(finder: Finder | None = None, sysfs_root: Path = SYSFS_USB) -> list
         kind = _classify(int(dev.idVendor), classes)
         if kind is None:
             continue
-        found.append(UsbDevice(
-            kind=kind,
-            vendor_id=int(dev.idVendor),
-            product_id=int(dev.idProduct),
-            vendor=SERIAL_BRIDGE_VENDORS.get(int(dev.idVendor), _read(sysfs, "manufacturer") or ""),
-            product=_read(sysfs, "product") or _descriptor(dev, "product"),
-            serial_number=_read(sysfs, "serial") or _descriptor(dev, "serial_number"),
-            bus=None if dev.bus is None else int(dev.bus),
-            port_path=port_path,
-            nodes=_nodes(sysfs_root, port_path) if port_path else (),
-        ))
+        found.append(
+            UsbDevice(
+                kind=kind,
+                vendor_id=int(dev.idVendor),
+                product_id=int(dev.idProduct),
+                vendor=SERIAL_BRIDGE_VENDORS.get(
+                    int(dev.idVendor), _read(sysfs, "manufacturer") or ""
+                ),
+                product=_read(sysfs, "product") or _descriptor(dev, "product"),
+                serial_number=_read(sysfs, "serial") or _descriptor(dev, "serial_number"),
+                bus=None if dev.bus is None else int(dev.bus),
+                port_path=port_path,
+                nodes=_nodes(sysfs_root, port_path) if port_path else (),
+            )
+        )
     return sorted(found, key=lambda d: (d.kind, d.port_path or "", d.vid_pid))
 
 
@@ -115,17 +119,19 @@ def discover_sysfs(sysfs_root: Path = SYSFS_USB) -> list[UsbDevice]:
         if kind is None:
             continue
         bus = _read(entry, "busnum")
-        found.append(UsbDevice(
-            kind=kind,
-            vendor_id=vid,
-            product_id=pid,
-            vendor=SERIAL_BRIDGE_VENDORS.get(vid, _read(entry, "manufacturer") or ""),
-            product=_read(entry, "product"),
-            serial_number=_read(entry, "serial"),
-            bus=int(bus) if bus and bus.isdigit() else None,
-            port_path=entry.name,
-            nodes=_nodes(sysfs_root, entry.name),
-        ))
+        found.append(
+            UsbDevice(
+                kind=kind,
+                vendor_id=vid,
+                product_id=pid,
+                vendor=SERIAL_BRIDGE_VENDORS.get(vid, _read(entry, "manufacturer") or ""),
+                product=_read(entry, "product"),
+                serial_number=_read(entry, "serial"),
+                bus=int(bus) if bus and bus.isdigit() else None,
+                port_path=entry.name,
+                nodes=_nodes(sysfs_root, entry.name),
+            )
+        )
     return sorted(found, key=lambda d: (d.kind, d.port_path or "", d.vid_pid))
 
 
@@ -139,10 +145,14 @@ def udev_rule(
     """
     tail = f'SYMLINK+="{name}", GROUP="{group}", MODE="0660"'
     if device is None:
-        return ('SUBSYSTEM=="tty", ATTRS{idVendor}=="VVVV", ATTRS{idProduct}=="PPPP", '
-                f'ATTRS{{serial}}=="SERIAL", {tail}')
-    match = (f'SUBSYSTEM=="tty", ATTRS{{idVendor}}=="{device.vendor_id:04x}", '
-             f'ATTRS{{idProduct}}=="{device.product_id:04x}", ')
+        return (
+            'SUBSYSTEM=="tty", ATTRS{idVendor}=="VVVV", ATTRS{idProduct}=="PPPP", '
+            f'ATTRS{{serial}}=="SERIAL", {tail}'
+        )
+    match = (
+        f'SUBSYSTEM=="tty", ATTRS{{idVendor}}=="{device.vendor_id:04x}", '
+        f'ATTRS{{idProduct}}=="{device.product_id:04x}", '
+    )
     if device.serial_number:
         match += f'ATTRS{{serial}}=="{device.serial_number}", '
     elif device.port_path:
@@ -175,24 +185,30 @@ def report(
     serial = [d for d in devices if d.kind == "serial"]
     video = [d for d in devices if d.kind == "video"]
     if not devices:
-        out.write("No USB serial bridges (FTDI, Prolific, CH340, CP210x, …) and no USB video "
-                  "devices found.\n"
-                  "Check the cable and power; a camera on a built-in RS-232 port "
-                  "(/dev/ttyS*) is not a USB device.\n")
+        out.write(
+            "No USB serial bridges (FTDI, Prolific, CH340, CP210x, …) and no USB video "
+            "devices found.\n"
+            "Check the cable and power; a camera on a built-in RS-232 port "
+            "(/dev/ttyS*) is not a USB device.\n"
+        )
     for title, group_devices in (("USB serial bridges", serial), ("USB video devices", video)):
         if not group_devices:
             continue
         out.write(f"{title}:\n")
         for d in group_devices:
             out.write(f"  {_describe(d)}\n")
-    out.write(f"\nudev rule for the camera's serial port (save as {RULES_FILE}, then run\n"
-              "  sudo udevadm control --reload-rules && sudo udevadm trigger):\n")
+    out.write(
+        f"\nudev rule for the camera's serial port (save as {RULES_FILE}, then run\n"
+        "  sudo udevadm control --reload-rules && sudo udevadm trigger):\n"
+    )
     if not serial:
         out.write("  # template: fill in from `udevadm info -a -n /dev/ttyUSB0`\n")
         out.write(f"{udev_rule(None, name, group)}\n")
     if len(serial) > 1:
-        out.write("# several bridges: keep only the camera's rule (unplug the camera's cable and "
-                  "run again to see which one goes)\n")
+        out.write(
+            "# several bridges: keep only the camera's rule (unplug the camera's cable and "
+            "run again to see which one goes)\n"
+        )
     for i, d in enumerate(serial):
         link = name if len(serial) == 1 else f"{name.rstrip('0123456789')}{i}"
         note = "" if d.serial_number else "  # no serial number: pinned to the USB port"
@@ -202,17 +218,24 @@ def report(
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Options of ``dffd devices``."""
-    parser.add_argument("--name", default=DEFAULT_LINK_NAME,
-                        help=f"symlink the udev rule creates in /dev (default {DEFAULT_LINK_NAME})")
-    parser.add_argument("--group", default=DEFAULT_GROUP,
-                        help=f"group owning the serial port (default {DEFAULT_GROUP})")
+    parser.add_argument(
+        "--name",
+        default=DEFAULT_LINK_NAME,
+        help=f"symlink the udev rule creates in /dev (default {DEFAULT_LINK_NAME})",
+    )
+    parser.add_argument(
+        "--group",
+        default=DEFAULT_GROUP,
+        help=f"group owning the serial port (default {DEFAULT_GROUP})",
+    )
     parser.add_argument("--sysfs-root", type=Path, default=SYSFS_USB, help=argparse.SUPPRESS)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``dffd devices``."""
-    return report(sys.stdout, sys.stderr, sysfs_root=args.sysfs_root, name=args.name,
-                  group=args.group)
+    return report(
+        sys.stdout, sys.stderr, sysfs_root=args.sysfs_root, name=args.name, group=args.group
+    )
 
 
 # -- private helpers ------------------------------------------------------------------------

@@ -60,13 +60,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         "speedup": ratio,
         "targets": {"core_mean_ms_max": TARGET_MS, "speedup_min": TARGET_RATIO},
         "pass": core["mean_ms"] <= TARGET_MS and ratio >= TARGET_RATIO,
-        "machine": {"python": sys.version.split()[0], "platform": platform.platform(),
-                    "opencv_threads": cv2.getNumThreads()},
+        "machine": {
+            "python": sys.version.split()[0],
+            "platform": platform.platform(),
+            "opencv_threads": cv2.getNumThreads(),
+        },
     }
-    print(f"core : mean {core['mean_ms']:.3f} ms  p50 {core['p50_ms']:.3f}  "
-          f"p95 {core['p95_ms']:.3f}  (target <= {TARGET_MS} ms)")
-    print(f"naive: mean {naive['mean_ms']:.3f} ms  p50 {naive['p50_ms']:.3f}  "
-          f"p95 {naive['p95_ms']:.3f}")
+    print(
+        f"core : mean {core['mean_ms']:.3f} ms  p50 {core['p50_ms']:.3f}  "
+        f"p95 {core['p95_ms']:.3f}  (target <= {TARGET_MS} ms)"
+    )
+    print(
+        f"naive: mean {naive['mean_ms']:.3f} ms  p50 {naive['p50_ms']:.3f}  "
+        f"p95 {naive['p95_ms']:.3f}"
+    )
     verdict = "PASS" if result["pass"] else "FAIL"
     print(f"speedup {ratio:.1f}x (target >= {TARGET_RATIO}x) -> {verdict}")
     if args.out is not None:
@@ -108,8 +115,12 @@ def _measure(fn: Callable[[Frame], object], frames: Sequence[Frame]) -> dict[str
         fn(f)
         times.append((time.thread_time_ns() - t0) / 1e6)
     a = np.asarray(times)
-    return {"mean_ms": float(a.mean()), "p50_ms": float(np.median(a)),
-            "p95_ms": float(np.percentile(a, 95)), "max_ms": float(a.max())}
+    return {
+        "mean_ms": float(a.mean()),
+        "p50_ms": float(np.median(a)),
+        "p95_ms": float(np.percentile(a, 95)),
+        "max_ms": float(a.max()),
+    }
 
 
 def _naive_frame(frame: Frame) -> float | None:

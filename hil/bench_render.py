@@ -69,14 +69,19 @@ CASES: dict[str, tuple[WorldConfig, Setup]] = {
     "focused-1.5m": (_static(1.5), _focus(1.5)),
     "defocused-1.5m": (_static(1.5), _far),  # blur radius ≈ 22 px
     "moving-2m/s-3m": (
-        WorldConfig(trajectory=TrajectoryConfig(
-            kind="linear", position_m=(-0.3, 0.0, 3.0), end_m=(0.3, 0.0, 3.0), speed_mps=2.0)),
+        WorldConfig(
+            trajectory=TrajectoryConfig(
+                kind="linear", position_m=(-0.3, 0.0, 3.0), end_m=(0.3, 0.0, 3.0), speed_mps=2.0
+            )
+        ),
         _focus(3.0),
     ),
     "focus-transit-5m": (_static(5.0), _sweeping),
     "textured-3m": (
-        WorldConfig(target=TargetConfig(shape="textured"),
-                    trajectory=TrajectoryConfig(kind="static", position_m=(0.0, 0.0, 3.0))),
+        WorldConfig(
+            target=TargetConfig(shape="textured"),
+            trajectory=TrajectoryConfig(kind="static", position_m=(0.0, 0.0, 3.0)),
+        ),
         _focus(3.0),
     ),
 }
@@ -125,12 +130,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         all_times += times
         results[name] = summarise(times)
         s = results[name]
-        print(f"{name:18s} mean {s['mean_ms']:5.2f}  p50 {s['p50_ms']:5.2f}  "
-              f"p95 {s['p95_ms']:5.2f}  max {s['max_ms']:6.2f} ms/frame")
+        print(
+            f"{name:18s} mean {s['mean_ms']:5.2f}  p50 {s['p50_ms']:5.2f}  "
+            f"p95 {s['p95_ms']:5.2f}  max {s['max_ms']:6.2f} ms/frame"
+        )
     overall = summarise(all_times)
-    print(f"{'all':18s} mean {overall['mean_ms']:5.2f}  p50 {overall['p50_ms']:5.2f}  "
-          f"p95 {overall['p95_ms']:5.2f}  max {overall['max_ms']:6.2f} ms/frame "
-          f"(budget {BUDGET_MS} ms, {config.sensor.width_px}×{config.sensor.height_px})")
+    print(
+        f"{'all':18s} mean {overall['mean_ms']:5.2f}  p50 {overall['p50_ms']:5.2f}  "
+        f"p95 {overall['p95_ms']:5.2f}  max {overall['max_ms']:6.2f} ms/frame "
+        f"(budget {BUDGET_MS} ms, {config.sensor.width_px}×{config.sensor.height_px})"
+    )
     if args.out:
         report = {
             "schema": 1,

@@ -116,8 +116,11 @@ class FakeCapture:
         return True
 
     def get(self, prop: int) -> float:
-        return {cv2.CAP_PROP_FRAME_WIDTH: 6.0, cv2.CAP_PROP_FRAME_HEIGHT: 4.0,
-                cv2.CAP_PROP_FPS: 30.0}.get(prop, 0.0)
+        return {
+            cv2.CAP_PROP_FRAME_WIDTH: 6.0,
+            cv2.CAP_PROP_FRAME_HEIGHT: 4.0,
+            cv2.CAP_PROP_FPS: 30.0,
+        }.get(prop, 0.0)
 
     def release(self) -> None:
         self._opened = False

@@ -64,8 +64,14 @@ def test_frames_csv_has_the_design_columns_and_bursts_are_inferred(tmp_path: Pat
     csv_path.write_text("\n".join(",".join(ln.split(",")[:7]) for ln in lines) + "\n")
     rec = RecordingReader(tmp_path / "run")
     assert rec.truth is None
-    assert [t.burst for t in (r.tag for r in rec.records)] == [None, None, (0, 0), (0, 1),
-                                                              (0, 2), None]
+    assert [t.burst for t in (r.tag for r in rec.records)] == [
+        None,
+        None,
+        (0, 0),
+        (0, 1),
+        (0, 2),
+        None,
+    ]
 
 
 def test_errors_name_the_file(tmp_path: Path) -> None:

@@ -25,8 +25,9 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("rec") / "run"
     pipe = Pipeline(PipelineConfig(), LENS)  # the closed loop needs a planner
     with RecordingWriter(path, 30, (640, 480), LENS.to_meta()) as rec:
-        for st in closed_loop(pipe, DiscScene(), LENS, approach, duration_s=8.0, seed=3,
-                              transit=True):
+        for st in closed_loop(
+            pipe, DiscScene(), LENS, approach, duration_s=8.0, seed=3, transit=True
+        ):
             pipe.process(st.frame, st.tag)
             rec.write(st.frame, st.tag, (st.truth_m[2], st.truth_m[0], st.truth_m[1]))
     return path
@@ -36,8 +37,20 @@ def test_replay_writes_estimates_summary_and_plot(
     run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out, summ, png = tmp_path / "est.jsonl", tmp_path / "s.json", tmp_path / "p.png"
-    code = main(["replay", str(run_dir), "--out", str(out), "--summary", str(summ),
-                 "--plot", str(png), "--settle", "3"])
+    code = main(
+        [
+            "replay",
+            str(run_dir),
+            "--out",
+            str(out),
+            "--summary",
+            str(summ),
+            "--plot",
+            str(png),
+            "--settle",
+            "3",
+        ]
+    )
     assert code == 0
     lines = [json.loads(x) for x in out.read_text().splitlines()]
     assert len(lines) > 50
@@ -63,15 +76,18 @@ def test_replay_writes_estimates_summary_and_plot(
 
 def test_replay_known_size_enables_cf1(run_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "est.jsonl"
-    assert main(["replay", str(run_dir), "--out", str(out), "--known-size", "0.03576",
-                 "--best", "kf"]) == 0
+    assert (
+        main(["replay", str(run_dir), "--out", str(out), "--known-size", "0.03576", "--best", "kf"])
+        == 0
+    )
     last = json.loads(out.read_text().splitlines()[-1])
     assert last["depth_m"]["cf1"] is not None
     assert last["best"] == "kf"
 
 
-def test_replay_errors_and_exit_codes(run_dir: Path, tmp_path: Path,
-                                      capsys: pytest.CaptureFixture[str]) -> None:
+def test_replay_errors_and_exit_codes(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["replay", str(tmp_path / "nothing"), "--out", str(tmp_path / "e")]) == 1
     assert "not found" in capsys.readouterr().err
     assert main(["replay", str(run_dir), "--out", str(tmp_path / "e"), "--roi", "1,2"]) == 2

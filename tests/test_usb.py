@@ -21,8 +21,15 @@ class FakeInterface:
 class FakeDevice:
     """What pyusb's Device offers that the discovery reads."""
 
-    def __init__(self, vid: int, pid: int, bus: int, ports: tuple[int, ...],
-                 interfaces: tuple[int, ...] = (0xFF,), device_class: int = 0) -> None:
+    def __init__(
+        self,
+        vid: int,
+        pid: int,
+        bus: int,
+        ports: tuple[int, ...],
+        interfaces: tuple[int, ...] = (0xFF,),
+        device_class: int = 0,
+    ) -> None:
         self.idVendor = vid
         self.idProduct = pid
         self.bus = bus
@@ -52,8 +59,14 @@ def _write(directory: Path, **files: str) -> None:
 def sysfs(tmp_path: Path) -> Path:
     root = tmp_path / "devices"
     # FTDI cable with a serial number on bus 1 port 1.4 → ttyUSB0
-    _write(root / "1-1.4", idVendor="0403", idProduct="6001", serial="A1B2C3",
-           product="FT232R USB UART", busnum="1")
+    _write(
+        root / "1-1.4",
+        idVendor="0403",
+        idProduct="6001",
+        serial="A1B2C3",
+        product="FT232R USB UART",
+        busnum="1",
+    )
     _write(root / "1-1.4:1.0", bInterfaceClass="ff")
     (root / "1-1.4:1.0" / "ttyUSB0").mkdir()
     # CH340 adapter without a serial number on bus 1 port 2 → ttyUSB1
@@ -61,8 +74,15 @@ def sysfs(tmp_path: Path) -> Path:
     _write(root / "1-2:1.0", bInterfaceClass="ff")
     (root / "1-2:1.0" / "ttyUSB1").mkdir()
     # UVC grabber on bus 2 port 1 → video0, video1
-    _write(root / "2-1", idVendor="534d", idProduct="2109", product="USB Video",
-           manufacturer="MACROSILICON", serial="GRAB01", busnum="2")
+    _write(
+        root / "2-1",
+        idVendor="534d",
+        idProduct="2109",
+        product="USB Video",
+        manufacturer="MACROSILICON",
+        serial="GRAB01",
+        busnum="2",
+    )
     _write(root / "2-1:1.0", bInterfaceClass="0e")
     (root / "2-1:1.0" / "video4linux" / "video0").mkdir(parents=True)
     (root / "2-1:1.0" / "video4linux" / "video1").mkdir(parents=True)
@@ -142,8 +162,9 @@ def test_missing_libusb_falls_back_to_sysfs(sysfs: Path) -> None:
 
 
 def test_udev_rule_text() -> None:
-    device = UsbDevice("serial", 0x0403, 0x6001, "FTDI", None, "A1B2C3", 1, "1-1.4",
-                       ("/dev/ttyUSB0",))
+    device = UsbDevice(
+        "serial", 0x0403, 0x6001, "FTDI", None, "A1B2C3", 1, "1-1.4", ("/dev/ttyUSB0",)
+    )
     assert udev_rule(device, "visca0", "dialout") == (
         'SUBSYSTEM=="tty", ATTRS{idVendor}=="0403", ATTRS{idProduct}=="6001", '
         'ATTRS{serial}=="A1B2C3", SYMLINK+="visca0", GROUP="dialout", MODE="0660"'

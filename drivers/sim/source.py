@@ -279,8 +279,10 @@ class SimFrameSource:
             )
             zoom_moving = state.zoom.moved_between(t_a, t_b)
             focus_samples = (
-                [state.focus.position(t_a + (k + 0.5) * (t_b - t_a) / FOCUS_TRANSIT_SAMPLES)
-                 for k in range(FOCUS_TRANSIT_SAMPLES)]
+                [
+                    state.focus.position(t_a + (k + 0.5) * (t_b - t_a) / FOCUS_TRANSIT_SAMPLES)
+                    for k in range(FOCUS_TRANSIT_SAMPLES)
+                ]
                 if focus_moving
                 else [mid.focus_counts]
             )
@@ -302,10 +304,14 @@ class SimFrameSource:
         z = float(cam[2])
         visible = mid.powered and z > MIN_DEPTH_M
         v = optics.sharp_v_mm(z, zoom) if z * 1000.0 > optics.focal_length_mm(zoom) else math.inf
-        blurs = [
-            optics.blur_radius_px(optics.lens_to_sensor_mm(c + self._jitter, zoom), v, zoom)
-            for c in focus_samples
-        ] if math.isfinite(v) else [0.0]
+        blurs = (
+            [
+                optics.blur_radius_px(optics.lens_to_sensor_mm(c + self._jitter, zoom), v, zoom)
+                for c in focus_samples
+            ]
+            if math.isfinite(v)
+            else [0.0]
+        )
         boundary_px, boundary_z = project(
             world.boundary_world(pose), mid.pan_deg, mid.tilt_deg, scale, principal
         )
@@ -316,10 +322,20 @@ class SimFrameSource:
 
         motion = (0.0, 0.0)
         if visible and self.capture.motion_blur:
-            p_a, _ = project(world.pose(t_a - self.world_epoch).position_m[None, :],
-                             start.pan_deg, start.tilt_deg, scale, principal)
-            p_b, _ = project(world.pose(t_b - self.world_epoch).position_m[None, :],
-                             end.pan_deg, end.tilt_deg, scale, principal)
+            p_a, _ = project(
+                world.pose(t_a - self.world_epoch).position_m[None, :],
+                start.pan_deg,
+                start.tilt_deg,
+                scale,
+                principal,
+            )
+            p_b, _ = project(
+                world.pose(t_b - self.world_epoch).position_m[None, :],
+                end.pan_deg,
+                end.tilt_deg,
+                scale,
+                principal,
+            )
             motion = (float(p_b[0, 0] - p_a[0, 0]), float(p_b[0, 1] - p_a[0, 1]))
 
         patch = None
@@ -329,11 +345,13 @@ class SimFrameSource:
             )
             corners_w = world.texture_corners_world(pose)
             corners_px = (
-                None if corners_w is None
+                None
+                if corners_w is None
                 else project(corners_w, mid.pan_deg, mid.tilt_deg, scale, principal)[0]
             )
             kernel = (
-                average_kernels([optics.psf(b) for b in blurs]) if len(blurs) > 1
+                average_kernels([optics.psf(b) for b in blurs])
+                if len(blurs) > 1
                 else optics.psf(blurs[0])
             )
             target = TargetImage(
@@ -349,8 +367,12 @@ class SimFrameSource:
 
         width, height = optics.frame_size
         in_view = visible and bool(
-            np.all((boundary_px[:, 0] >= -0.5) & (boundary_px[:, 0] <= width - 0.5)
-                   & (boundary_px[:, 1] >= -0.5) & (boundary_px[:, 1] <= height - 0.5))
+            np.all(
+                (boundary_px[:, 0] >= -0.5)
+                & (boundary_px[:, 0] <= width - 0.5)
+                & (boundary_px[:, 1] >= -0.5)
+                & (boundary_px[:, 1] <= height - 0.5)
+            )
         )
         finite = bool(np.all(np.isfinite(boundary_px)))
         centroid = boundary_px.mean(axis=0) if finite else np.array([math.nan, math.nan])

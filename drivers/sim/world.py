@@ -201,14 +201,25 @@ def make_shape(config: TargetConfig) -> TargetShape:
     if config.shape == "textured":
         half = scale
         return TargetShape(
-            "textured", config.size_m, outline, boundary, config.foreground_dn,
-            _blob_texture(config), half,
+            "textured",
+            config.size_m,
+            outline,
+            boundary,
+            config.foreground_dn,
+            _blob_texture(config),
+            half,
         )
     if config.shape == "aruco":
         texture, marker_fraction = _aruco_texture(config)
         return TargetShape(
-            "aruco", config.size_m, outline, boundary, config.foreground_dn,
-            texture, scale, aruco_marker_side_m=2.0 * scale * marker_fraction,
+            "aruco",
+            config.size_m,
+            outline,
+            boundary,
+            config.foreground_dn,
+            texture,
+            scale,
+            aruco_marker_side_m=2.0 * scale * marker_fraction,
         )
     return TargetShape(config.shape, config.size_m, outline, boundary, config.foreground_dn)
 
