@@ -25,7 +25,10 @@ def circle(t: float) -> tuple[float, float, float]:
 
 @pytest.fixture(scope="module")
 def paper_run() -> dict[str, np.ndarray]:
-    pipe = Pipeline(PipelineConfig(known_size_m=R), LENS)
+    # this synthetic circle turns in 20 s (~1 m/s) and settles in 5 s: the observer poles it
+    # was tuned with (the default 0.15 rad/s is for the slower reference-simulator circle); its
+    # closed loop has no focus travel, a burst follows the plan at once: no plan lead
+    pipe = Pipeline(PipelineConfig(known_size_m=R, lpv_omega=0.6, plan_lead_s=0.0), LENS)
     est: dict[str, list[tuple[float, float]]] = {k: [] for k in ("cf1", "cf2", "lpv", "kf")}
     meas: list[tuple[float, float]] = []
     sizes: list[float] = []
@@ -70,7 +73,7 @@ def test_paper_like_accuracy_on_synthetic_images(paper_run: dict[str, np.ndarray
     assert lpv <= 0.5 * raw
     assert lpv <= cf2 * 1.05  # LPV no worse than CF2
     for name in ("cf1", "kf"):
-        assert _ss_std(paper_run[name]) <= 0.5 * raw
+        assert _ss_std(paper_run[name]) <= 0.5 * raw, (name, _ss_std(paper_run[name]), raw)
     # R̂ converges to the real size
     assert np.median(paper_run["size"][-100:]) == pytest.approx(R, rel=0.01)
 
