@@ -45,9 +45,20 @@ centre has moved by more than ``retarget_steps`` bracket steps: chasing estimate
 moves would cost transit frames and restart the tracking count.
 
 Pan/tilt: a proportional controller on the centroid's angular error (pixels → angle through the
-focal length and pixel pitch), corrected for the camera's own motion since the exposure, issuing
-Pan-tiltDrive speeds (or absolute moves) at most every ``pan_tilt_min_interval_s``, never within
-one camera command slot of a focus command (the link is budgeted for focus first).
+focal length and pixel pitch), corrected for the camera's own motion since the exposure, plus
+velocity feed-forward (the target's angular velocity from its first two centroids on, then
+filtered), issuing Pan-tiltDrive speeds (or absolute moves) at most every
+``pan_tilt_min_interval_s``, never within one camera command slot of a focus command (the link
+is budgeted for focus first).
+
+Acquisition and loss. The core's burst plans are ignored until the contour has been seen on
+``acquire_stable_frames`` consecutive frames (acquire first, then bursts). Frames without a
+contour for up to ``pan_tilt_lost_s`` are coasted through (transit blur, brief occlusion); after
+that the target is lost and the head *searches*: it keeps driving along the target's predicted
+path for ``pan_tilt_search_s`` (a target that left the field of view most likely did so along
+its motion), then returns to the direction where the target was last seen with one absolute move
+and holds there. The core re-searches the frame throughout, so a target that comes back into
+view is re-acquired and followed again.
 """
 
 from __future__ import annotations
@@ -127,7 +138,14 @@ class SchedulerConfig:
     pan_tilt_gain_per_s: float = 1.5  # commanded deg/s per degree of error
     pan_tilt_feedforward: bool = True  # add the target's filtered angular velocity
     pan_tilt_velocity_tau_s: float = 0.3  # time constant of that velocity filter
-    pan_tilt_lost_s: float = 0.5  # no centroid for this long: stop pan/tilt
+    pan_tilt_lost_s: float = 0.5  # no centroid for this long: the target is lost → search
+    # Search after a loss: keep driving towards the target's extrapolated direction (its last
+    # direction plus its filtered angular velocity times the time since) for this long, then
+    # return to the last direction it was seen in and hold there (0: hold at once).
+    pan_tilt_search_s: float = 2.0
+    # Consecutive frames with a contour before the core's burst plans are followed: bursts (long
+    # focus travel, transit frames) start only once the contour is stable (0: no such gate).
+    acquire_stable_frames: int = 0
     pan_tilt_deadband_deg: float = 0.3
     pan_tilt_min_interval_s: float = 0.1
     pan_tilt_poll_interval_s: float = 0.25
@@ -148,6 +166,10 @@ class SchedulerConfig:
             raise ValueError(f"baudrate must be > 0 (got {self.baudrate})")
         if self.pan_sign not in (1, -1) or self.tilt_sign not in (1, -1):
             raise ValueError("pan_sign and tilt_sign must be +1 or -1")
+        if self.pan_tilt_search_s < 0 or self.pan_tilt_lost_s < 0:
+            raise ValueError("pan_tilt_lost_s and pan_tilt_search_s must be >= 0")
+        if self.acquire_stable_frames < 0:
+            raise ValueError("acquire_stable_frames must be >= 0")
 
     @property
     def period_s(self) -> float:
@@ -405,6 +427,8 @@ class Scheduler:
         self._plan: tuple[int, ...] | None = None
         self._sigma: float | None = None
         self._burst_now = False
+        self._stable = 0  # consecutive frames with a centroid (acquisition)
+        self._centroid_t = -math.inf
         # Pan/tilt.
         self._pt = _PanTilt(config)
 
@@ -428,6 +452,11 @@ class Scheduler:
     def frame_period_s(self) -> float:
         """Frame period estimated from delivered timestamps."""
         return self._period
+
+    @property
+    def searching(self) -> bool:
+        """The target is lost and pan/tilt is searching along its predicted path."""
+        return self._pt.searching
 
     def pan_tilt_at(self, t: float) -> tuple[float, float]:
         """Model pan/tilt (deg) at time ``t``."""
@@ -547,6 +576,14 @@ class Scheduler:
         lost (pan/tilt stops). ``pan_deg``/``tilt_deg``: the tag's pan/tilt for that exposure.
         """
         self._sigma = sigma_m
+        need = self.config.acquire_stable_frames
+        if centroid_px is not None:
+            self._stable += 1
+            self._centroid_t = t
+        elif self._stable < need or t - self._centroid_t > self.config.pan_tilt_lost_s:
+            self._stable = 0  # not acquired yet, or lost: acquire again before bursts
+        if self._stable < need:
+            plan = None  # acquire first: no bursts until the contour has been stable a while
         if plan is not None:
             self._plan = tuple(sorted(int(c) for c in plan))
             self._track_counts = self._plan[len(self._plan) // 2]
@@ -580,7 +617,7 @@ class Scheduler:
 
     def stop_pan_tilt(self) -> None:
         """Stop following the target: one stop is issued, then nothing until a new centroid."""
-        self._pt.on_centroid(math.inf, None, 0.0, 0.0)
+        self._pt.release()
 
     # -- decisions --------------------------------------------------------------------------
     def next_actions(self, now: float) -> list[Action]:
@@ -942,6 +979,9 @@ class _PanTilt:
         self._target_t = -math.inf  # exposure time of that direction
         self._velocity = (0.0, 0.0)  # filtered target angular velocity, deg/s
         self._stop_pending = False
+        self._return_pending = False
+        self._searching = False
+        self._velocity_samples = 0
         self._eval_due = math.inf
         self._last_focus_cmd = -math.inf
         self._last_step = -math.inf
@@ -974,15 +1014,7 @@ class _PanTilt:
         if cfg.pan_tilt_mode == "off":
             return
         if centroid is None:
-            # A frame without a usable contour (transit blur, a brief occlusion) is not a lost
-            # target: keep following the extrapolated direction for ``pan_tilt_lost_s``.
-            if self._target is not None and t - self._target_t <= cfg.pan_tilt_lost_s:
-                return
-            if self._target is not None or self._rate != (0.0, 0.0) or self._goal is not None:
-                self._stop_pending = True
-                self._eval_due = self._last_cmd_t + cfg.pan_tilt_min_interval_s
-            self._target = None
-            self._velocity = (0.0, 0.0)
+            self._on_no_centroid(t)
             return
         w, h = cfg.frame_size
         ex = cfg.pan_sign * pixel_offset_to_deg(
@@ -998,9 +1030,12 @@ class _PanTilt:
         if prev is not None and t > prev_t and t - prev_t <= MAX_VELOCITY_GAP_S:
             # Target angular velocity (feed-forward): a first-order filter on the differences of
             # its direction; without it a P-controller trails a moving target by ω/K, which at
-            # telephoto is more than the field of view.
+            # telephoto is more than the field of view. The first difference is taken as it is
+            # (feed-forward from the first two centroids: a target crossing at 7°/s leaves a
+            # ±3° field of view in under a second, no time to let a filter converge).
             dt = t - prev_t
-            a = min(1.0, dt / cfg.pan_tilt_velocity_tau_s)
+            a = 1.0 if self._velocity_samples == 0 else min(1.0, dt / cfg.pan_tilt_velocity_tau_s)
+            self._velocity_samples += 1
             vp = (target[0] - prev[0]) / dt
             vt = (target[1] - prev[1]) / dt
             self._velocity = (
@@ -1009,10 +1044,53 @@ class _PanTilt:
             )
         elif prev is None:
             self._velocity = (0.0, 0.0)
+            self._velocity_samples = 0
         self._target = target
         self._target_t = t
         self._stop_pending = False
+        self._return_pending = False
         self._eval_due = min(self._eval_due, self._last_cmd_t + cfg.pan_tilt_min_interval_s)
+
+    def release(self) -> None:
+        """Stop following: one stop, then nothing until a new centroid (no search)."""
+        if self._target is not None or self._rate != (0.0, 0.0) or self._goal is not None:
+            self._stop_pending = True
+            self._eval_due = self._last_cmd_t + self.config.pan_tilt_min_interval_s
+        self._return_pending = False
+        self._forget_target()
+
+    @property
+    def searching(self) -> bool:
+        """The target is lost and the head is searching for it (coast or return)."""
+        return self._searching
+
+    def _on_no_centroid(self, t: float) -> None:
+        """A frame without a contour: coast, then search, then return to the last direction.
+
+        Up to ``pan_tilt_lost_s`` this is a transit blur or a brief occlusion: keep following the
+        extrapolated direction. Up to ``pan_tilt_search_s`` more the target is lost: keep driving
+        along its predicted path (it most likely left the field of view that way) while the core
+        searches every frame. After that, one absolute move back to the last direction it was
+        seen in, and hold there (the core keeps searching the whole frame).
+        """
+        cfg = self.config
+        if self._target is None:
+            return
+        age = t - self._target_t
+        if age <= cfg.pan_tilt_lost_s:
+            return
+        if age <= cfg.pan_tilt_lost_s + cfg.pan_tilt_search_s:
+            self._searching = True
+            return
+        self._searching = False
+        self._return_pending = True
+        self._eval_due = self._last_cmd_t + cfg.pan_tilt_min_interval_s
+
+    def _forget_target(self) -> None:
+        self._target = None
+        self._velocity = (0.0, 0.0)
+        self._velocity_samples = 0
+        self._searching = False
 
     def step(self, now: float, next_focus_cmd: float | None) -> Action | None:
         cfg = self.config
@@ -1053,11 +1131,19 @@ class _PanTilt:
         cfg = self.config
         if self._stop_pending:
             return PanTiltStop()
+        if self._return_pending and self._target is not None:
+            # The bounded search found nothing: back to where the target was last seen.
+            seen = self._target
+            self._return_pending = False
+            self._forget_target()
+            idx = cfg.absolute_speed_index
+            return PanTiltAbsolute(seen[0], seen[1], idx, min(idx, TILT_MAX_SPEED_INDEX))
         if self._target is None:
             return None
         pan_now, tilt_now = self.at(now)
         ff = self._velocity if cfg.pan_tilt_feedforward else (0.0, 0.0)
-        ahead = max(0.0, now - self._target_t)  # extrapolate the target to now
+        # Extrapolate the target to now (bounded by the search horizon).
+        ahead = min(max(0.0, now - self._target_t), cfg.pan_tilt_lost_s + cfg.pan_tilt_search_s)
         err_p = self._target[0] + ff[0] * ahead - pan_now
         err_t = self._target[1] + ff[1] * ahead - tilt_now
         dead = cfg.pan_tilt_deadband_deg
@@ -1072,7 +1158,10 @@ class _PanTilt:
                 return None
             idx = cfg.absolute_speed_index
             return PanTiltAbsolute(
-                self._target[0], self._target[1], idx, min(idx, TILT_MAX_SPEED_INDEX)
+                self._target[0] + ff[0] * ahead,
+                self._target[1] + ff[1] * ahead,
+                idx,
+                min(idx, TILT_MAX_SPEED_INDEX),
             )
         rate_p = _axis_rate(err_p, ff[0], dead, cfg.pan_tilt_gain_per_s)
         rate_t = _axis_rate(err_t, ff[1], dead, cfg.pan_tilt_gain_per_s)

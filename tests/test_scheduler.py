@@ -500,17 +500,68 @@ def test_target_right_and_up_drives_pan_right_and_tilt_up() -> None:
     assert first.pan_rate_deg_s == speed_of_index(first.pan_speed)
 
 
-def test_centred_target_gives_no_motion_and_lost_target_stops() -> None:
+def test_centred_target_gives_no_motion_and_lost_target_is_searched_for() -> None:
     h = Harness(PT, centroid=(319.5, 239.5))
     h.run(0.5)
     assert _pan_tilt_commands(h) == []
-    h2 = Harness(PT, centroid=(600.0, 239.5))
+    cfg = replace(PT, pan_tilt_lost_s=0.5, pan_tilt_search_s=1.0)
+    h2 = Harness(cfg, centroid=(600.0, 239.5))
     h2.run(0.3)
     assert isinstance(_pan_tilt_commands(h2)[-1][1], PanTiltDrive)
+    lost_at = h2.now
     h2.centroid = None
-    h2.run(0.3)
-    assert isinstance(_pan_tilt_commands(h2)[-1][1], PanTiltStop)
-    assert sum(isinstance(a, PanTiltStop) for _, a in _pan_tilt_commands(h2)) == 1
+    h2.run(2.5)
+    cmds = [(t, a) for t, a in _pan_tilt_commands(h2) if t > lost_at]
+    # Lost: no stop, but a bounded search, then one absolute move back to the last direction.
+    assert not any(isinstance(a, PanTiltStop) for _, a in cmds)
+    returns = [(t, a) for t, a in cmds if isinstance(a, PanTiltAbsolute)]
+    assert len(returns) == 1
+    t_ret, ret = returns[0]
+    assert t_ret - lost_at >= cfg.pan_tilt_lost_s + cfg.pan_tilt_search_s - 0.1
+    expected = pixel_offset_to_deg(600.0 - 319.5, cfg.focal_length_mm, cfg.pixel_pitch_mm)
+    assert ret.pan_deg == pytest.approx(expected, abs=0.5)  # the harness re-anchors pan at 0
+    assert cmds[-1][1] is ret  # then it holds there
+    assert h2.sched.searching is False
+
+
+def test_release_stops_pan_tilt_once_without_search() -> None:
+    h = Harness(PT, centroid=(600.0, 239.5))
+    h.run(0.3)
+    h.sched.stop_pan_tilt()
+    h.centroid = None
+    t0 = h.now
+    h.run(3.0)
+    cmds = [a for t, a in _pan_tilt_commands(h) if t >= t0]
+    assert cmds == [PanTiltStop()]
+
+
+def test_feedforward_from_the_first_two_centroids() -> None:
+    """A target crossing at 7°/s is followed at 7°/s from its second centroid on."""
+    cfg = replace(PT, focal_length_mm=31.0, pixel_pitch_mm=0.005, pan_tilt_poll_interval_s=100.0)
+    s = Scheduler(cfg)
+    s.next_actions(0.0)
+    s.on_pan_tilt_position(0.0, 0.0, 0.0)
+    s.on_pan_tilt_done(0.0)
+    px_per_deg = 1.0 / pixel_offset_to_deg(1.0, 31.0, 0.005)
+    for k in range(2):
+        t = 0.1 + k / 30.0
+        s.on_estimate(
+            t, sigma_m=None, plan=None, centroid_px=(319.5 + 7.0 * t * px_per_deg, 239.5),
+            pan_deg=0.0, tilt_deg=0.0,
+        )  # fmt: skip
+    drives = [a for a in s.next_actions(0.2) if isinstance(a, PanTiltDrive)]
+    assert len(drives) == 1
+    assert drives[0].pan_rate_deg_s >= 7.0
+
+
+def test_bursts_wait_for_a_stable_contour() -> None:
+    cfg = replace(BASE, acquire_stable_frames=3)
+    h = Harness(cfg, centroid=None)
+    h.run(1.5)
+    assert h.sched.stats.bursts_started == 0  # plans without a contour are not followed
+    h.centroid = (319.5, 239.5)
+    h.run(1.5)
+    assert h.sched.stats.bursts_started >= 2
 
 
 def test_pan_tilt_command_rate_and_link_budget() -> None:
@@ -639,6 +690,13 @@ def test_feedforward_follows_a_moving_target_and_missing_centroids_do_not_stop()
     s.on_estimate(0.95, sigma_m=None, plan=None, centroid_px=None)
     assert not any(isinstance(a, PanTiltStop) for a in s.next_actions(1.05))
     s.on_pan_tilt_done(1.06)
-    # … a target gone for longer than pan_tilt_lost_s does.
+    # … nor does a target gone for longer than pan_tilt_lost_s: the head searches along the
+    # predicted path (still about 10°/s), then returns to the last direction seen.
     s.on_estimate(1.6, sigma_m=None, plan=None, centroid_px=None)
-    assert any(isinstance(a, PanTiltStop) for a in s.next_actions(1.7))
+    assert s.searching
+    assert not any(isinstance(a, PanTiltStop) for a in s.next_actions(1.7))
+    late = 0.5 + 9 / 30 + s.config.pan_tilt_lost_s + s.config.pan_tilt_search_s + 0.1
+    s.on_estimate(late, sigma_m=None, plan=None, centroid_px=None)
+    back = [a for a in s.next_actions(late + 0.1) if isinstance(a, PanTiltAbsolute)]
+    assert len(back) == 1
+    assert back[0].pan_deg == pytest.approx(10.0 * 9 / 30, abs=0.3)
