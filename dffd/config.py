@@ -79,9 +79,12 @@ DEFAULT_MQTT_PORT = 1883  # IANA port for MQTT
 DEFAULT_MQTTS_PORT = 8883  # IANA port for MQTT over TLS
 EMBEDDED_HOST = "127.0.0.1"  # the embedded broker never listens beyond loopback
 
-ScenarioName = Literal["static", "approach", "paper-circle", "figure-eight", "random"]
+SCENARIO_NAMES = ("static", "approach", "paper-circle", "figure-eight", "random")
+# Named scenarios are read (never imported: dffd does not depend on hil) from the source tree.
+SCENARIO_DIR = REPO_ROOT / "hil" / "scenarios"
 EstimatorName = Literal["lpv", "kf", "cf2", "cf1"]
 BurstPolicy = Literal["every_n", "sigma"]
+PanTiltMode = Literal["drive", "absolute", "off"]
 LogLevel = Literal["DEBUG", "INFO", "WARNING", "ERROR"]
 
 
@@ -184,18 +187,40 @@ class LensConfig(_Section):
 
 
 class SchedulerConfig(_Section):
-    """``[scheduler]``: when to take bursts and how to keep the target centred."""
+    """``[scheduler]``: when to take bursts, how to acquire and keep the target centred."""
 
     burst_policy: BurstPolicy = "every_n"
     burst_every_n_frames: Annotated[int, Field(ge=1, le=1000)] = 10
     sigma_threshold_m: Annotated[float, Field(gt=0, le=10)] = 0.05
+    sigma_max_interval_frames: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        default=90,
+        description="sigma policy: tracking frames between bursts while σ stays below threshold",
+    )
+    timing_margin_s: Annotated[float, Field(ge=0, le=0.1)] = Field(
+        default=0.003, description="bound on frame-timestamp error when tagging frames, s"
+    )
+    initial_focus_depth_m: Annotated[float, Field(gt=0, le=1000)] = Field(
+        default=4.0, description="focus depth while acquiring, before any estimate"
+    )
+    acquire_stable_frames: Annotated[int, Field(ge=0, le=100)] = Field(
+        default=3, description="frames with a contour before bursts start (acquire first)"
+    )
+    pan_tilt_mode: PanTiltMode = "drive"
     pan_tilt_kp_per_s: Annotated[float, Field(ge=0, le=50)] = Field(
         default=1.5, description="proportional gain: angular rate per degree of centroid error"
     )
-    pan_tilt_ki_per_s2: Annotated[float, Field(ge=0, le=50)] = 0.0
+    pan_tilt_feedforward: bool = Field(
+        default=True, description="add the target's angular velocity to the pan/tilt rate"
+    )
     pan_tilt_deadband_px: Annotated[float, Field(ge=0, le=100)] = 4.0
     pan_tilt_max_command_hz: Annotated[float, Field(gt=0, le=60)] = Field(
         default=10.0, description="cap on pan/tilt commands per second (they share the serial link)"
+    )
+    pan_tilt_lost_s: Annotated[float, Field(ge=0, le=60)] = Field(
+        default=0.5, description="no contour this long: the target is lost (search starts)"
+    )
+    pan_tilt_search_s: Annotated[float, Field(ge=0, le=60)] = Field(
+        default=2.0, description="follow the lost target's predicted path this long, then return"
     )
 
 
@@ -375,15 +400,41 @@ class LogConfig(_Section):
 class SimConfig(_Section):
     """``[sim]``: the simulated camera and world used when camera.driver is 'sim'."""
 
-    scenario: ScenarioName = "paper-circle"
+    scenario: str = Field(
+        default="paper-circle",
+        description="a scenario name (static, approach, paper-circle, figure-eight, random: "
+        "hil/scenarios/<name>.toml of this source tree) or the path of a TOML file with "
+        "[target] and [trajectory] tables",
+    )
+    start_phase_deg: Annotated[float, Field(ge=-360, le=360)] | None = Field(
+        default=180.0,
+        description="overrides the trajectory's phase_deg (circle/figure-eight start point)",
+    )
     seed: Annotated[int, Field(ge=0, le=2**63 - 1)] = 1
     camera_config: Path | None = Field(
         default=None, description="simulated camera TOML (default: built in)"
     )
-    visca_transport: Literal["pty", "in-process"] = Field(
-        default="pty", description="pty = real serial path over a pseudo-terminal"
+    visca_transport: Literal["pty"] = Field(
+        default="pty", description="pty = the real serial path over a pseudo-terminal (only one)"
     )
     publish_truth: bool = True
+
+    @field_validator("scenario")
+    @classmethod
+    def _scenario_form(cls, value: str) -> str:
+        if value in SCENARIO_NAMES or value.endswith(".toml"):
+            return value
+        raise _value_error(
+            f"{value!r} is neither a scenario name ({', '.join(SCENARIO_NAMES)}) nor the path of "
+            "a .toml scenario file"
+        )
+
+    @property
+    def scenario_file(self) -> Path:
+        """The scenario TOML: a name resolved in hil/scenarios/ of this tree, or the path."""
+        if self.scenario in SCENARIO_NAMES:
+            return SCENARIO_DIR / f"{self.scenario}.toml"
+        return Path(self.scenario)
 
 
 class DffdConfig(BaseSettings):
@@ -484,6 +535,7 @@ def missing_files(config: DffdConfig) -> list[str]:
         ("mqtt.certfile", config.mqtt.certfile),
         ("mqtt.keyfile", config.mqtt.keyfile),
         ("sim.camera_config", config.sim.camera_config),
+        ("sim.scenario", config.sim.scenario_file),
     ]
     return [
         f"{dotted}: {file} does not exist; create it or fix the path"
@@ -572,6 +624,13 @@ def _resolve_paths(config: DffdConfig, data: Mapping[str, Any], base: Path) -> D
             anchor = base if from_file and not from_env else Path.cwd()
             value = anchor / value
         updates[section] = model.model_copy(update={key: value})
+    sim: SimConfig = updates.get("sim") or config.sim  # type: ignore[assignment]
+    if sim.scenario not in SCENARIO_NAMES and not Path(sim.scenario).is_absolute():
+        from_file = isinstance(data.get("sim"), dict) and "scenario" in data["sim"]
+        from_env = _env_name("sim", "scenario") in _environ_upper()
+        anchor = base if from_file and not from_env else Path.cwd()
+        resolved = str(anchor / Path(sim.scenario).expanduser())
+        updates["sim"] = sim.model_copy(update={"scenario": resolved})
     return config.model_copy(update=updates)
 
 

@@ -226,7 +226,9 @@ def test_bad_environment_value_names_the_variable(monkeypatch: pytest.MonkeyPatc
         ("[mqtt]\nembedded_port = 0\n", "mqtt.embedded_port: 0 is out of range; allowed: 1 ≤"),
         ('[log]\nlevel = "LOUD"\n', "log.level: 'LOUD' is not allowed; use 'DEBUG', 'INFO'"),
         ("[log]\nmax_bytes = 10\n", "log.max_bytes: 10 is out of range; allowed: 4096 ≤"),
-        ('[sim]\nscenario = "circle"\n', "sim.scenario: 'circle' is not allowed; use 'static'"),
+        ('[sim]\nscenario = "circle"\n', "sim.scenario: 'circle' is neither a scenario name"),
+        ('[sim]\nvisca_transport = "in-process"\n', "sim.visca_transport: 'in-process' is not"),
+        ("[scheduler]\npan_tilt_ki_per_s2 = 0.1\n", "scheduler.pan_tilt_ki_per_s2: unknown key"),
         ('[sim]\npublish_truth = "maybe"\n', "sim.publish_truth: 'maybe' is not a boolean"),
         ("[sim]\nscneario = 1\n", "sim.scneario: unknown key; did you mean 'scenario'?"),
         ("[mqttt]\nurl = 1\n", "mqttt: unknown section; did you mean 'mqtt'?"),
@@ -294,3 +296,23 @@ def test_check_config_missing_files(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["check-config", lab]) == 0  # valid; missing files are warnings…
     assert "warning: mqtt.password_file" in capsys.readouterr().err
     assert cli.main(["check-config", "--check-files", lab]) == 2  # …or errors on request
+
+
+def test_scenario_is_a_name_in_the_tree_or_a_path_next_to_the_file(tmp_path: Path) -> None:
+    default = load_config(None)
+    assert default.sim.scenario_file == REPO_ROOT / "hil" / "scenarios" / "paper-circle.toml"
+    assert default.sim.scenario_file.is_file()
+    assert default.sim.start_phase_deg == 180.0  # the demo's fair start (config/dffd.toml)
+    (tmp_path / "sub").mkdir()
+    path = write(tmp_path / "sub", '[sim]\nscenario = "mine.toml"\n')
+    config = load_config(path)
+    assert config.sim.scenario_file == tmp_path / "sub" / "mine.toml"
+    assert missing_files(config) == [
+        f"sim.scenario: {tmp_path / 'sub' / 'mine.toml'} does not exist; create it or fix the path"
+    ]
+
+
+def test_scheduler_keys_reach_their_defaults() -> None:
+    sc = load_config(None).scheduler
+    assert (sc.pan_tilt_mode, sc.pan_tilt_feedforward, sc.timing_margin_s) == ("drive", True, 0.003)
+    assert (sc.pan_tilt_lost_s, sc.pan_tilt_search_s, sc.acquire_stable_frames) == (0.5, 2.0, 3)

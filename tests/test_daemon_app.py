@@ -97,3 +97,49 @@ def test_console_renders_a_snapshot() -> None:
     assert "lpv (best)" in text
     assert "0.010" in text  # lpv error against the truth
     assert "DOWN" in text  # MQTT down is shown
+
+
+def test_sim_world_comes_from_the_scenario_file(tmp_path: Any) -> None:
+    """The daemon's world is the scenario TOML read through the simulator's own config types."""
+    from pathlib import Path
+
+    from dffd.config import load_config
+    from dffd.daemon.app import Daemon
+
+    sim = Daemon(load_config(None))._sim_camera_config()
+    traj = sim.world.trajectory
+    assert (traj.kind, traj.center_m, traj.radius_m, traj.speed_mps) == (
+        "circle", (0.0, 0.0, 6.0), 4.0, 0.25,
+    )  # fmt: skip
+    assert traj.phase_deg == 180.0  # sim.start_phase_deg overrides the scenario's 0°
+    assert sim.world.target.size_m == 0.03576
+    scenario = Path(tmp_path) / "spin.toml"
+    scenario.write_text(
+        '[target]\nshape = "polygon"\nsides = 5\nrotation_dps = 20.0\n'
+        '[trajectory]\nkind = "static"\nposition_m = [0.0, 0.0, 3.0]\n',
+        encoding="utf-8",
+    )
+    cfg = load_config(None).model_copy(deep=True)
+    cfg.sim.scenario = str(scenario)
+    sim = Daemon(cfg)._sim_camera_config()
+    assert sim.world.target.shape == "polygon"
+    assert sim.world.target.rotation_dps == 20.0
+    assert sim.world.trajectory.position_m == (0.0, 0.0, 3.0)
+
+
+def test_a_core_output_that_does_not_fit_the_schema_is_skipped_not_fatal() -> None:
+    from dffd.config import load_config
+    from dffd.daemon.app import Daemon
+    from dffd.mqtt import models
+
+    daemon = Daemon(load_config(None))
+
+    def cut_short(_: object) -> models.Measurement:  # a burst cut by a link fault: 2 frames
+        return models.Measurement(
+            seq=1, burst=1, t=0.0, t_mono=0.0, focus_counts=[1, 2], costs=[1.0, 2.0],
+            fit=models.Fit(accepted=False, reason="too few samples"),
+        )  # fmt: skip
+
+    assert daemon._payload_or_none(cut_short, None) is None
+    assert daemon._payload_or_none(cut_short, None) is None
+    assert daemon.payloads_skipped == 2

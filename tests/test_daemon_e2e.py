@@ -45,7 +45,7 @@ EXIT_TIMEOUT_S = 10.0
 # Polling period of the JSONL log file during the broker outage.
 LOG_POLL_S = 0.1
 CONVERGED_TOL_M = 0.10
-TRUE_DEPTH_M = 4.0  # the static scenario (dffd/daemon/app.py SCENARIO_WORLDS)
+TRUE_DEPTH_M = 4.0  # the static scenario (hil/scenarios/static.toml)
 BACKLOG_MAX = 20
 
 KINDS = {

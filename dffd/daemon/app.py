@@ -40,12 +40,15 @@ import signal
 import sys
 import threading
 import time
+import tomllib
 from collections import deque
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ValidationError
 
 from dffd import __version__
 from dffd.config import REPO_ROOT, ConfigError, DffdConfig, load_config, missing_files
@@ -113,30 +116,15 @@ ESTIMATOR_POLL_S = 0.2
 ESTIMATOR_JOIN_TIMEOUT_S = 2.0
 # Core commands wait at most this long for the estimator thread to apply them.
 CORE_COMMAND_TIMEOUT_S = 2.0
-# Focus depth used before any estimate (middle of the paper's 2–10 m range).
-INITIAL_FOCUS_DEPTH_M = 4.0
 # Nominal bracket spacing (counts) for the rate limit until the core plans a burst.
 DEFAULT_SPACING_COUNTS = 300
-# Trajectories of the built-in scenarios (same parameters as hil/scenarios/*.toml).
-SCENARIO_WORLDS: dict[str, dict[str, Any]] = {
-    "static": {"kind": "static", "position_m": (0.0, 0.0, 4.0)},
-    "approach": {
-        "kind": "linear", "position_m": (0.0, 0.0, 10.0), "end_m": (0.0, 0.0, 1.5),
-        "speed_mps": 0.3,
-    },
-    "paper-circle": {
-        "kind": "circle", "center_m": (0.0, 0.0, 6.0), "radius_m": 4.0, "speed_mps": 0.25,
-        "phase_deg": 0.0,
-    },
-    "figure-eight": {
-        "kind": "figure-eight", "center_m": (0.0, 0.0, 5.0), "radius_m": 2.0, "speed_mps": 0.3,
-    },
-    "random": {
-        "kind": "random", "center_m": (0.0, 0.0, 6.0), "extent_m": (2.0, 0.3, 3.0),
-        "speed_mps": 0.3,
-    },
-}  # fmt: skip
 DEFAULT_SIM_CAMERA_FILE = REPO_ROOT / "config" / "sim-camera.toml"
+# Frames waiting between the capture thread and the loop (drop-oldest beyond): the estimator
+# wants the newest frame; two absorb one slow loop iteration.
+CAPTURE_QUEUE_FRAMES = 2
+
+
+_M = TypeVar("_M", bound=BaseModel)
 
 
 class DaemonError(RuntimeError):
@@ -304,7 +292,12 @@ class EstimatorThread:
     def _process(self, work: _Work) -> EstimatorResult:
         c0 = time.thread_time()
         pipeline = self.pipeline
-        out = pipeline.process(work.frame, work.tag)
+        if pipeline.state != "tracking" and work.tag.role == "transit":
+            # Acquire only on frames exposed at a stationary focus: a contour started on a frame
+            # blurred by focus travel (the start-up move, a burst) is lost a few frames later.
+            out = PipelineOutput(pipeline.state, None, None, None)
+        else:
+            out = pipeline.process(work.frame, work.tag)
         obs = out.observation
         centroid = obs.centroid if obs is not None and obs.ok else None
         sigma: float | None = None
@@ -385,6 +378,7 @@ class Daemon:
         self._focus_q: asyncio.Queue[Action] = asyncio.Queue(ACTION_QUEUE_MAX)
         self._pt_q: asyncio.Queue[Action] = asyncio.Queue(ACTION_QUEUE_MAX)
         self.results_dropped = 0
+        self.payloads_skipped = 0  # core outputs that did not fit the MQTT schema
         self.frames = RateMeter()
         self.estimates = RateMeter()
         self.measurements = RateMeter()
@@ -453,7 +447,9 @@ class Daemon:
                 source, exposure_s, focus_speed = await self._start_source(stack, lens)
                 self._sched_config = self._scheduler_config(lens, source, exposure_s, focus_speed)
                 self.scheduler = Scheduler(self._sched_config)
-                self.scheduler.set_track_focus(lens.counts_for_depth(INITIAL_FOCUS_DEPTH_M))
+                self.scheduler.set_track_focus(
+                    lens.counts_for_depth(cfg.scheduler.initial_focus_depth_m)
+                )
                 log = JsonlLog(
                     cfg.log.dir, max_bytes=cfg.log.max_bytes, backup_count=cfg.log.backup_count
                 )
@@ -567,11 +563,6 @@ class Daemon:
         from drivers.sim.device import DeviceConfig
         from drivers.sim.server import SimCameraServer
 
-        if cfg.sim.visca_transport == "in-process":
-            _LOGGER.warning(
-                "sim.visca_transport = 'in-process' is not wired into the daemon yet; "
-                "serving the simulated camera on a pty instead"
-            )
         sim_cfg = self._sim_camera_config()
         from drivers.sim.source import camera_state_for
 
@@ -587,20 +578,26 @@ class Daemon:
         return str(server.path)
 
     def _sim_camera_config(self) -> Any:
+        """The simulated camera of ``sim.camera_config`` looking at ``sim.scenario``'s world."""
         from drivers.sim.config import SimConfigError, load_sim_camera_config, with_overrides
 
         cfg = self.config
         path = cfg.sim.camera_config or DEFAULT_SIM_CAMERA_FILE
+        target, trajectory = _scenario_world(cfg.sim.scenario_file)
+        trajectory = {**trajectory, "seed": cfg.sim.seed}
+        if cfg.sim.start_phase_deg is not None:
+            trajectory["phase_deg"] = cfg.sim.start_phase_deg
         try:
             base = load_sim_camera_config(path)
             overrides: dict[str, Any] = {
                 "seed": cfg.sim.seed,
-                "world.trajectory": {**SCENARIO_WORLDS[cfg.sim.scenario], "seed": cfg.sim.seed},
+                "world.target": target,
+                "world.trajectory": trajectory,
                 "capture.fps": cfg.capture.fps,
             }
             return with_overrides(base, overrides)
         except SimConfigError as exc:
-            raise DaemonError(f"sim.camera_config: {exc}") from exc
+            raise DaemonError(f"sim.camera_config / sim.scenario: {exc}") from exc
 
     async def _start_source(
         self, stack: contextlib.AsyncExitStack, lens: Lens
@@ -637,7 +634,7 @@ class Daemon:
         sc = cfg.scheduler
         fps = source.fps
         exposure = None if exposure_s is None else min(exposure_s, 1.0 / fps)
-        sigma = sc.sigma_threshold_m if sc.burst_policy == "sigma" else None
+        sigma_policy = sc.burst_policy == "sigma"
         deadband = pixel_offset_to_deg(
             sc.pan_tilt_deadband_px, lens.focal_length_mm, lens.pixel_pitch_mm
         )
@@ -645,18 +642,27 @@ class Daemon:
             fps=fps,
             exposure_s=exposure,
             capture_latency_frames=math.ceil(cfg.capture.latency_frames),
-            burst_every_frames=sc.burst_every_n_frames,
-            sigma_trigger_m=sigma,
+            timing_margin_s=sc.timing_margin_s,
+            # sigma policy: a burst when σ of ẑ exceeds the threshold, and otherwise only after
+            # sigma_max_interval_frames (so a filter that under-reports σ cannot starve it).
+            burst_every_frames=sc.sigma_max_interval_frames if sigma_policy else (
+                sc.burst_every_n_frames
+            ),
+            sigma_trigger_m=sc.sigma_threshold_m if sigma_policy else None,
             focus_speed_counts_per_s=focus_speed,
             baudrate=cfg.camera.baudrate,
             focal_length_mm=lens.focal_length_mm,
             pixel_pitch_mm=lens.pixel_pitch_mm,
             frame_size=source.frame_size,
-            pan_tilt_mode="drive" if sc.pan_tilt_kp_per_s > 0 else "off",
+            pan_tilt_mode=sc.pan_tilt_mode,
             pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
+            pan_tilt_feedforward=sc.pan_tilt_feedforward,
+            pan_tilt_lost_s=sc.pan_tilt_lost_s,
+            pan_tilt_search_s=sc.pan_tilt_search_s,
+            acquire_stable_frames=sc.acquire_stable_frames,
             pan_tilt_deadband_deg=deadband,
             pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
-        )
+        )  # fmt: skip
 
     def _pipeline_config(self) -> PipelineConfig:
         est = self.config.estimators
@@ -843,16 +849,19 @@ class Daemon:
             out = result.output
             self._state = out.state
             if out.measurement is not None:
-                payload_m = self._measurement_payload(out.measurement)
-                self.measurements.add(now)
                 if out.measurement.accepted:
                     self.bursts_accepted += 1
                 else:
                     self.bursts_rejected += 1
-                log.append("measurement", payload_m)
-                publisher.publish(payload_m)
+                self.measurements.add(now)
+                payload_m = self._payload_or_none(self._measurement_payload, out.measurement)
+                if payload_m is not None:
+                    log.append("measurement", payload_m)
+                    publisher.publish(payload_m)
+            payload_e = None
             if out.estimate is not None:
-                payload_e = self._estimate_payload(out.estimate)
+                payload_e = self._payload_or_none(self._estimate_payload, out.estimate)
+            if payload_e is not None:
                 self.estimates.add(now)
                 self._last_depth = dict(payload_e.depth_m.model_dump())
                 self._last_size = payload_e.size_m
@@ -982,6 +991,20 @@ class Daemon:
             tilt_deg=_fin(est.tilt_deg) or 0.0,
             focus_counts=est.focus_counts if est.focus_counts and est.focus_counts >= 0 else None,
         )
+
+    def _payload_or_none(self, build: Callable[[Any], _M], item: Any) -> _M | None:
+        """A payload, or None (logged, counted) when the core's output does not fit the schema.
+
+        One odd result must never stop the service: e.g. the core reports a burst cut short by
+        a link fault with fewer than the three frames the ``…/measurement`` schema requires.
+        """
+        try:
+            return build(item)
+        except ValidationError as exc:
+            self.payloads_skipped += 1
+            level = logging.DEBUG if self.payloads_skipped > 1 else logging.WARNING
+            _LOGGER.log(level, "not published (%d so far): %s", self.payloads_skipped, exc)
+            return None
 
     def _measurement_payload(self, m: CoreMeasurement) -> models.Measurement:
         self._measurement_seq += 1
@@ -1118,17 +1141,47 @@ def _force_exit() -> None:
 
 def _open_capture(config: DffdConfig) -> FrameSource:
     """The OpenCV frame source of ``[capture]`` (drivers/capture.py)."""
+    from drivers.capture import CaptureSettings, OpenCVFrameSource
+
+    cap = config.capture
+    assert cap.device is not None  # validated: v4l2 needs a device
+    settings = CaptureSettings(
+        device=cap.device,
+        width=cap.width,
+        height=cap.height,
+        fps=cap.fps,
+        fourcc=cap.fourcc,
+        buffer_size=1,  # one driver buffer: read() returns a fresh frame, not a stale one
+        gray=True,  # the estimator's input
+        queue_frames=CAPTURE_QUEUE_FRAMES,
+        latency_s=cap.latency_frames / cap.fps,
+    )
+    return OpenCVFrameSource(settings)
+
+
+def _scenario_world(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The ``[target]`` and ``[trajectory]`` tables of a scenario TOML (hil/scenarios/*.toml).
+
+    Read as data, never imported: dffd does not depend on hil. The tables are validated by the
+    simulator's own config types (``drivers.sim.config.WorldConfig``) when applied.
+    """
     try:
-        from drivers import capture  # type: ignore[attr-defined,unused-ignore]
-    except ImportError as exc:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
         raise DaemonError(
-            "capture.source = 'v4l2' needs drivers/capture.py, which is not installed here"
+            f"sim.scenario: cannot read {path}: {exc.strerror}; give a scenario name "
+            "(static, approach, paper-circle, figure-eight, random) or a TOML file path"
         ) from exc
-    factory = getattr(capture, "from_config", None) or getattr(capture, "OpenCVFrameSource", None)
-    if factory is None:
-        raise DaemonError("drivers.capture has no from_config/OpenCVFrameSource to open a device")
-    source: FrameSource = factory(config.capture)
-    return source
+    except tomllib.TOMLDecodeError as exc:
+        raise DaemonError(f"sim.scenario: {path} is not valid TOML: {exc}") from exc
+    target = data.get("target", {})
+    trajectory = data.get("trajectory")
+    if not isinstance(trajectory, dict) or not isinstance(target, dict):
+        raise DaemonError(
+            f"sim.scenario: {path} needs a [trajectory] table (and optionally [target]) "
+            "with the keys of drivers/sim/config.py TrajectoryConfig/TargetConfig"
+        )
+    return target, trajectory
 
 
 def _fin(value: float | None) -> float | None:
