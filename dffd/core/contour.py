@@ -11,6 +11,7 @@ resampled. The same per-normal maxima feed the focus cost (2).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -25,6 +26,9 @@ Motion = Literal["translation", "similarity", "affine"]
 HUBER_K_PX = 1.0  # Huber threshold on normal residuals: about 3x the sub-pixel edge noise
 OUTLIER_PX = 3.0  # residuals beyond this after IRLS are clutter/occlusion, not the target edge
 IRLS_ITERATIONS = 4
+# Extra border of the per-frame gradient window: the passes after the first move the contour by a
+# pixel or two (measured on the reference simulator), so they reuse the first pass's gradient.
+GRADIENT_SLACK_PX = 4
 RIDGE = 1e-3  # keeps the tangential slide of a circle (unobservable from normals) at zero
 
 
@@ -111,8 +115,9 @@ class ContourTracker:
         self._bad_frames = 0
         self._polarity = self._estimate_polarity(gray, pts)
         obs: BoundaryObservation | None = None
+        grad = _GradientCache(gray, self.config.presmooth_sigma_px)
         for _ in range(6):
-            obs = self._step(gray, self._points, "affine", relax=0.5)
+            obs = self._step(grad, self._points, "affine", relax=0.5)
             if not obs.ok:
                 self.reset()
                 return False
@@ -126,7 +131,8 @@ class ContourTracker:
         dt = max(t - self._t, 0.0)
         predicted = self._points + self._velocity * dt
         relax = self.config.relax if motion != "translation" else 0.0
-        obs = self._step(gray, predicted, motion, relax)
+        grad = _GradientCache(gray, self.config.presmooth_sigma_px)
+        obs = self._step(grad, predicted, motion, relax)
         current = predicted
         for _ in range(self.config.max_passes - 1):
             if not obs.ok:
@@ -136,7 +142,7 @@ class ContourTracker:
             if moved <= self.config.refine_px:
                 break
             current = obs.points
-            again = self._step(gray, current, motion, relax)
+            again = self._step(grad, current, motion, relax)
             if not again.ok:
                 break
             obs = again
@@ -161,31 +167,41 @@ class ContourTracker:
 
     # -- one measurement + fit on one image -------------------------------------------------
     def _step(
-        self, gray: npt.NDArray[np.uint8], pts: FloatArray, motion: Motion, relax: float
+        self, grad: _GradientCache, pts: FloatArray, motion: Motion, relax: float
     ) -> BoundaryObservation:
         cfg = self.config
         n = len(pts)
         normals = outward_normals(pts)
-        offsets, peak_sq, valid, width2 = self._search(gray, pts, normals)
+        offsets, peak_sq, valid, width2 = self._search(grad, pts, normals)
         centroid = pts.mean(axis=0)
-        scale = max(float(np.sqrt(np.mean(np.sum((pts - centroid) ** 2, axis=1)))), 1.0)
-        design = _design(pts, normals, centroid, scale, motion)
+        d = pts - centroid
+        scale = max(math.sqrt(float(np.einsum("ij,ij->", d, d)) / n), 1.0)
+        design = _design(d / scale, normals, motion)
         params, weights, residuals = _irls(design, offsets, valid)
         inliers = valid & (np.abs(residuals) <= OUTLIER_PX) & (weights > 0)
-        inlier_fraction = float(np.count_nonzero(inliers)) / n
+        n_in = int(np.count_nonzero(inliers))
+        inlier_fraction = n_in / n
         if inlier_fraction < cfg.min_inlier_fraction:
             return _bad(pts, peak_sq, inlier_fraction)
-        shift = design @ params  # normal displacement per point, from the fitted motion
-        field = _motion_field(params, pts, centroid, scale, motion)
-        new_pts = pts + field
+        new_pts = pts + _motion_field(params, d / scale, motion)
         if relax > 0:
             # adopt a fraction of the non-rigid residual (smoothed along the contour) on inliers
+            shift = design @ params  # normal displacement per point, from the fitted motion
             resid = np.where(inliers, offsets - shift, 0.0)
             resid = (np.roll(resid, 1) + 2 * resid + np.roll(resid, -1)) / 4.0
             new_pts = new_pts + relax * resid[:, None] * normals
         new_pts = resample_closed(new_pts, n)
-        r = radius_of(new_pts)
-        ok = cfg.min_radius_px <= r <= cfg.max_radius_px and _inside(gray, new_pts)
+        c = new_pts.mean(axis=0)
+        dn = new_pts - c
+        r = math.sqrt(float(np.einsum("ij,ij->", dn, dn)) / n)
+        h, w = grad.shape
+        ok = (
+            cfg.min_radius_px <= r <= cfg.max_radius_px
+            and float(new_pts[:, 0].min()) >= 0
+            and float(new_pts[:, 1].min()) >= 0
+            and float(new_pts[:, 0].max()) < w
+            and float(new_pts[:, 1].max()) < h
+        )
         # The maximum of |∇I| across a blurred curved edge lies inside it: for a disc of
         # radius a blurred by a Gaussian σ, −∂I/∂ρ ∝ I1(ρa/σ²) e^{−(ρ²+a²)/2σ²} ≈ ρ^{−1/2}
         # e^{−(ρ−a)²/2σ²}, whose peak is at ρ = a − σ²/(2a). σ² (image blur + pre-smoothing +
@@ -193,12 +209,12 @@ class ContourTracker:
         # sub-pixel step fits. Measured: r − a = −0.9/a px on synthetic discs of 22–85 px
         # before (−0.19 % at 22 px: a depth-dependent bias of z s = R), within ±0.005 px after.
         w2 = width2[inliers & np.isfinite(width2)]
-        edge_sigma2 = float(np.median(w2)) if len(w2) >= 8 else math.nan
+        edge_sigma2 = _median(w2) if len(w2) >= 8 else math.nan
         if cfg.curvature_correction and math.isfinite(edge_sigma2) and r > 0:
             r += edge_sigma2 / (2.0 * r)
-        rms = float(np.sqrt(np.mean(residuals[inliers] ** 2)))
+        res_in = residuals[inliers]
+        rms = math.sqrt(float(res_in @ res_in) / n_in)
         peaks = np.where(inliers, peak_sq, np.nan)
-        c = new_pts.mean(axis=0)
         return BoundaryObservation(
             points=new_pts,
             centroid=(float(c[0]), float(c[1])),
@@ -211,40 +227,35 @@ class ContourTracker:
         )
 
     def _search(
-        self, gray: npt.NDArray[np.uint8], pts: FloatArray, normals: FloatArray
+        self, grad: _GradientCache, pts: FloatArray, normals: FloatArray
     ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_], FloatArray]:
         """Per normal: sub-pixel offset of the max ||∇I||² (target polarity), its value, valid,
         and the squared Gaussian width σ² of the peak (NaN where not measurable)."""
         cfg = self.config
         s = cfg.search_px
-        h, w = gray.shape[:2]
-        margin = s + 4
-        x0 = max(math.floor(pts[:, 0].min()) - margin, 0)
-        y0 = max(math.floor(pts[:, 1].min()) - margin, 0)
-        x1 = min(math.ceil(pts[:, 0].max()) + margin + 1, w)
-        y1 = min(math.ceil(pts[:, 1].max()) + margin + 1, h)
         n = len(pts)
-        if x1 - x0 < 4 or y1 - y0 < 4:
+        window = grad.window(pts, s + 4)
+        if window is None:
             return np.zeros(n), np.full(n, np.nan), np.zeros(n, dtype=bool), np.full(n, np.nan)
-        gx, gy = gradient(gray[y0:y1, x0:x1], cfg.presmooth_sigma_px)
-        steps = np.arange(-s, s + 1, dtype=np.float64)
-        sx = pts[:, 0:1] + steps[None, :] * normals[:, 0:1] - x0
-        sy = pts[:, 1:2] + steps[None, :] * normals[:, 1:2] - y0
-        mapx = sx.astype(np.float32)
-        mapy = sy.astype(np.float32)
+        gx, gy, x0, y0 = window
+        steps = _steps(s)
+        mapx = (pts[:, 0:1] + steps * normals[:, 0:1] - x0).astype(np.float32)
+        mapy = (pts[:, 1:2] + steps * normals[:, 1:2] - y0).astype(np.float32)
         bx = cv2.remap(gx, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         by = cv2.remap(gy, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        mag = (bx * bx + by * by).astype(np.float64)
-        along = bx * normals[:, 0:1].astype(np.float32) + by * normals[:, 1:2].astype(np.float32)
+        mag = bx * bx + by * by
+        n32 = normals.astype(np.float32) * np.float32(self._polarity)
         # keep the target's edge polarity only: clutter edges of the other sign are ignored
-        mag = np.where(along * self._polarity < 0, mag, 0.0)
+        mag[bx * n32[:, 0:1] + by * n32[:, 1:2] >= 0] = 0.0
         j = np.argmax(mag, axis=1)
         rows = np.arange(n)
-        peak = mag[rows, j]
-        interior = (j > 0) & (j < len(steps) - 1)
-        jm = np.clip(j - 1, 0, len(steps) - 1)
-        jp = np.clip(j + 1, 0, len(steps) - 1)
-        ym, y0v, yp = mag[rows, jm], peak, mag[rows, jp]
+        last = 2 * s
+        jm = np.maximum(j - 1, 0)
+        jp = np.minimum(j + 1, last)
+        ym = mag[rows, jm].astype(np.float64)
+        y0v = mag[rows, j].astype(np.float64)
+        yp = mag[rows, jp].astype(np.float64)
+        interior = (j > 0) & (j < last)
         # Log-parabola (Gaussian) interpolation: the gradient magnitude of a blurred edge is
         # close to a Gaussian, whose log is exactly a parabola; a plain parabola would lock the
         # edge towards the sample grid and bias r by ~0.1 % whenever the grid phase changes.
@@ -254,25 +265,18 @@ class ContourTracker:
         good = interior & (denom < 0) & (ym > 0) & (yp > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             delta = np.where(good, 0.5 * (lm - lp) / denom, 0.0)
-        delta = np.clip(delta, -0.5, 0.5)
-        peak_val = np.where(good, np.exp(l0 - 0.25 * (lm - lp) * delta) - tiny, y0v)
-        offsets = steps[j] + delta
-        med = float(np.median(peak_val[interior])) if np.any(interior) else 0.0
-        valid = (
-            interior
-            & (peak_val >= cfg.min_rel_peak * med)
-            & (peak_val >= cfg.min_abs_grad**2)
-        )
-        with np.errstate(divide="ignore", invalid="ignore"):
             width2 = np.where(good, -2.0 / denom, np.nan)  # ln|∇I|² = c − x²/σ²: Δ² = −2/σ²
+        np.clip(delta, -0.5, 0.5, out=delta)
+        peak_val = np.where(good, np.exp(l0 - 0.25 * (lm - lp) * delta) - tiny, y0v)
+        offsets = (j - s) + delta
+        med = _median(peak_val[interior]) if interior.any() else 0.0
+        valid = interior & (peak_val >= max(cfg.min_rel_peak * med, cfg.min_abs_grad**2))
         return offsets, peak_val, valid, width2
 
     def _estimate_polarity(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> float:
         normals = outward_normals(pts)
-        c = pts.mean(axis=0)
         inside = _sample(gray, pts - 3.0 * normals)
         outside = _sample(gray, pts + 3.0 * normals)
-        del c
         return 1.0 if float(np.median(inside - outside)) >= 0 else -1.0
 
 
@@ -355,13 +359,16 @@ def resample_closed(points: FloatArray, n: int) -> FloatArray:
 
 def outward_normals(points: FloatArray) -> FloatArray:
     """Unit normals pointing away from the polygon's interior (either orientation)."""
-    tangent = np.roll(points, -1, axis=0) - np.roll(points, 1, axis=0)
-    normals = np.column_stack([tangent[:, 1], -tangent[:, 0]])
-    norm = np.hypot(normals[:, 0], normals[:, 1])
-    normals = normals / np.maximum(norm, 1e-12)[:, None]
+    nxt, prv = _neighbours(len(points))
+    tangent = points[nxt] - points[prv]
+    normals = np.empty_like(tangent)
+    normals[:, 0] = tangent[:, 1]
+    normals[:, 1] = -tangent[:, 0]
+    norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))
+    normals /= np.maximum(norm, 1e-12)[:, None]
     # signed area > 0 means counter-clockwise in image coordinates (y down): flip to outward
     x, y = points[:, 0], points[:, 1]
-    area = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    area = 0.5 * float(x @ y[nxt] - x[nxt] @ y)
     return normals if area < 0 else -normals
 
 
@@ -371,56 +378,57 @@ def radius_of(points: FloatArray) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
-def _design(
-    pts: FloatArray, normals: FloatArray, centroid: FloatArray, scale: float, motion: Motion
-) -> FloatArray:
+def _design(d: FloatArray, normals: FloatArray, motion: Motion) -> FloatArray:
+    """Normal displacement per unit motion parameter; ``d`` = (points − centroid) / scale."""
     nx, ny = normals[:, 0], normals[:, 1]
     if motion == "translation":
-        return np.column_stack([nx, ny])
-    dx = (pts[:, 0] - centroid[0]) / scale
-    dy = (pts[:, 1] - centroid[1]) / scale
+        return normals.copy()
+    dx, dy = d[:, 0], d[:, 1]
     if motion == "similarity":
         # δ = [[a, -b], [b, a]] d + t
-        return np.column_stack([nx * dx + ny * dy, -nx * dy + ny * dx, nx, ny])
+        return np.column_stack([nx * dx + ny * dy, ny * dx - nx * dy, nx, ny])
     return np.column_stack([nx * dx, nx * dy, ny * dx, ny * dy, nx, ny])
 
 
-def _motion_field(
-    params: FloatArray, pts: FloatArray, centroid: FloatArray, scale: float, motion: Motion
-) -> FloatArray:
+def _motion_field(params: FloatArray, d: FloatArray, motion: Motion) -> FloatArray:
     if motion == "translation":
-        return np.broadcast_to(params[:2], pts.shape).copy()
-    d = (pts - centroid) / scale
+        return np.broadcast_to(params[:2], d.shape).copy()
     if motion == "similarity":
         a, b, tx, ty = params
-        return np.column_stack([a * d[:, 0] - b * d[:, 1] + tx, b * d[:, 0] + a * d[:, 1] + ty])
+        lin = np.array([[a, b], [-b, a]])  # row-vector form of [[a, -b], [b, a]]
+        return np.asarray(d @ lin + np.array([tx, ty]), dtype=np.float64)
     a11, a12, a21, a22, tx, ty = params
-    return np.column_stack(
-        [a11 * d[:, 0] + a12 * d[:, 1] + tx, a21 * d[:, 0] + a22 * d[:, 1] + ty]
-    )
+    lin = np.array([[a11, a21], [a12, a22]])
+    return np.asarray(d @ lin + np.array([tx, ty]), dtype=np.float64)
 
 
 def _irls(
     design: FloatArray, y: FloatArray, valid: npt.NDArray[np.bool_]
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Huber-weighted least squares with a small ridge; returns params, weights, residuals."""
+    """Huber-weighted least squares with a small ridge; returns params, weights, residuals.
+
+    Stops early when the weights repeat: the next solve would return the same parameters (on a
+    clean edge every residual is below the Huber threshold and one re-weighting settles it).
+    """
     k = design.shape[1]
     w = valid.astype(np.float64)
     params: FloatArray = np.zeros(k)
-    ridge = RIDGE * max(float(np.count_nonzero(valid)), 1.0) * np.eye(k)
+    yv = np.where(valid, y, 0.0)
+    ridge = RIDGE * max(float(np.count_nonzero(valid)), 1.0) * _eye(k)
+    res = y.copy()
     for _ in range(IRLS_ITERATIONS):
         if np.count_nonzero(w) < k:
             break
         a = design * w[:, None]
-        params = np.asarray(
-            np.linalg.solve(design.T @ a + ridge, a.T @ np.where(valid, y, 0.0)), dtype=np.float64
-        )
+        params = np.asarray(np.linalg.solve(design.T @ a + ridge, a.T @ yv), dtype=np.float64)
         res = y - design @ params
         absr = np.abs(res)
-        w = np.where(valid, np.minimum(1.0, HUBER_K_PX / np.maximum(absr, 1e-12)), 0.0)
-        w = np.where(absr > 2 * OUTLIER_PX, 0.0, w)
-    residuals = y - design @ params
-    return params, w, residuals
+        w_new = np.where(valid, np.minimum(1.0, HUBER_K_PX / np.maximum(absr, 1e-12)), 0.0)
+        w_new[absr > 2 * OUTLIER_PX] = 0.0
+        if np.array_equal(w_new, w):
+            break
+        w = w_new
+    return params, w, res
 
 
 def _bad(pts: FloatArray, peak_sq: FloatArray, inlier_fraction: float) -> BoundaryObservation:
@@ -436,16 +444,6 @@ def _bad(pts: FloatArray, peak_sq: FloatArray, inlier_fraction: float) -> Bounda
     )
 
 
-def _inside(gray: npt.NDArray[np.uint8], pts: FloatArray) -> bool:
-    h, w = gray.shape[:2]
-    return bool(
-        pts[:, 0].min() >= 0
-        and pts[:, 1].min() >= 0
-        and pts[:, 0].max() < w
-        and pts[:, 1].max() < h
-    )
-
-
 def _sample(gray: npt.NDArray[np.uint8], pts: FloatArray) -> FloatArray:
     img = gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
     mx = pts[:, 0].astype(np.float32).reshape(1, -1)
@@ -454,3 +452,75 @@ def _sample(gray: npt.NDArray[np.uint8], pts: FloatArray) -> FloatArray:
         img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
     )
     return np.asarray(out, dtype=np.float64).ravel()
+
+
+class _GradientCache:
+    """The pre-smoothed gradient of one frame around the target, computed once per frame.
+
+    The passes of one update search nearly the same neighbourhood: the window is grown by
+    ``GRADIENT_SLACK_PX`` so that the following passes (the contour moves by a pixel or two)
+    reuse it; a pass that leaves it recomputes a window around its own contour.
+    """
+
+    __slots__ = ("_box", "_gray", "_gx", "_gy", "_sigma", "shape")
+
+    def __init__(self, gray: npt.NDArray[np.uint8], presmooth_sigma_px: float) -> None:
+        self._gray = gray
+        self._sigma = presmooth_sigma_px
+        self._box: tuple[int, int, int, int] | None = None
+        self._gx: npt.NDArray[np.float32] | None = None
+        self._gy: npt.NDArray[np.float32] | None = None
+        self.shape: tuple[int, int] = (int(gray.shape[0]), int(gray.shape[1]))
+
+    def window(
+        self, pts: FloatArray, margin: int
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int, int] | None:
+        """(gx, gy, x0, y0) of a window holding ``pts`` ± ``margin``, or None."""
+        h, w = self.shape
+        (xmin, ymin), (xmax, ymax) = pts.min(axis=0).tolist(), pts.max(axis=0).tolist()
+        x0 = max(math.floor(xmin) - margin, 0)
+        y0 = max(math.floor(ymin) - margin, 0)
+        x1 = min(math.ceil(xmax) + margin + 1, w)
+        y1 = min(math.ceil(ymax) + margin + 1, h)
+        if x1 - x0 < 4 or y1 - y0 < 4:
+            return None
+        box = self._box
+        if box is None or x0 < box[0] or y0 < box[1] or x1 > box[2] or y1 > box[3]:
+            slack = GRADIENT_SLACK_PX
+            box = (max(x0 - slack, 0), max(y0 - slack, 0), min(x1 + slack, w), min(y1 + slack, h))
+            self._gx, self._gy = gradient(self._gray[box[1] : box[3], box[0] : box[2]], self._sigma)
+            self._box = box
+        assert self._gx is not None and self._gy is not None
+        return self._gx, self._gy, box[0], box[1]
+
+
+@functools.cache
+def _steps(search_px: int) -> FloatArray:
+    """Sample offsets along a normal, −s … s px, as a row."""
+    steps: FloatArray = np.arange(-search_px, search_px + 1, dtype=np.float64)[None, :]
+    steps.flags.writeable = False
+    return steps
+
+
+@functools.cache
+def _neighbours(n: int) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Indices of the next and previous vertex of a closed polygon of ``n`` points."""
+    idx = np.arange(n)
+    nxt, prv = np.roll(idx, -1), np.roll(idx, 1)
+    nxt.flags.writeable = False
+    prv.flags.writeable = False
+    return nxt, prv
+
+
+@functools.cache
+def _eye(k: int) -> FloatArray:
+    eye: FloatArray = np.eye(k)
+    eye.flags.writeable = False
+    return eye
+
+
+def _median(values: FloatArray) -> float:
+    """np.median of a small 1-D array (same value) without its per-call overhead."""
+    v = np.sort(values)
+    m = len(v) // 2
+    return float(v[m]) if len(v) % 2 else float((v[m - 1] + v[m]) / 2.0)
