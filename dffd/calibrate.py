@@ -1,37 +1,61 @@
 """``dffd calibrate``: fit the focus counts ↔ v table, measure the capture latency (DESIGN §2, §4).
 
-Focus table. The target is placed at several known depths z; at each, the focus is swept (coarse
-over the whole range, then fine around the sharpest setting), each frame's focus cost (2) is
-taken exactly as the core takes it (active contour normals → :func:`dffd.core.focus.focus_cost`),
-and the sharpest counts is the vertex of a parabola fitted to the costs around the minimum. The
-thin lens gives the lens-to-sensor distance of that depth, ``v = f z / (z − f)``; the pairs
-(counts, v), sorted and checked monotone, are written as a lens TOML file (PCHIP-interpolated by
+One procedure (:func:`calibrate`) runs against a :class:`Rig` — the simulated camera
+(``--sim``: :class:`SimRig`, lock-step virtual time) or the real camera (:class:`LabRig`: the
+VISCA camera on ``camera.port`` and the video device ``capture.device`` of ``--config``). Only the
+rig differs; the sweep, the fit and the file written are the same code.
+
+Capture latency (first, at the first depth). The focus is settled, a few frames give the image
+noise floor, then a focus step is commanded and the frames delivered after the command that still
+show the old focus are counted: the frames in flight → ``[capture] latency_frames``.
+
+Focus table. The target is placed at each known depth z (``--depths``; on the real camera an
+operator places it and presses Enter at the terminal prompt). The focus is swept coarse over the
+whole range, then fine around the sharpest setting; every sample is a frame exposed entirely
+after the focus move completed (latency + 2 frames after the VISCA Completion); the focus cost
+(2) is taken exactly as the core takes it (active contour normals →
+:func:`dffd.core.focus.focus_cost`) and the sharpest counts is the vertex of a parabola fitted
+to the costs around the minimum. The thin lens gives ``v = f z / (z − f)``; the pairs (counts,
+v), sorted and checked monotone, are written as a lens TOML file (PCHIP-interpolated by
 :class:`dffd.core.lens.Lens`).
 
-Capture latency. A focus step is commanded between two exposures and frames are counted until
-the image changes; the frames delivered in between are the frames in flight.
+Lab procedure (real camera):
 
-``--sim`` runs both against the simulated camera in lock-step virtual time (its optics are
-written independently of the estimator, so this is a genuine test of the procedure). The lab
-procedure on real hardware (serial port + video device, an operator placing the target at each
-depth) is not implemented yet: the command says so and exits 2.
+1. Mount the camera, set the zoom used in service (``[lens] zoom_counts`` or the lens file's),
+   light the target evenly; the target must be the only high-contrast blob in view, centred.
+2. ``dffd calibrate --config /etc/dffd/dffd.toml --depths 1,1.5,2,3,4.5,7,10,20
+   --out /etc/dffd/lenses/NEW.toml`` — the config names ``camera.port``, ``capture.device`` (and
+   its size/fps/fourcc) and ``lens.file`` (its focal length and pixel pitch are reused: f is
+   fixed at a fixed zoom).
+3. At each prompt place the target at that depth along the optical axis (measure from the
+   front principal plane; ±5 mm matters at 1 m) and press Enter. About a minute per depth.
+4. Set ``[lens] file`` to the new table and ``[capture] latency_frames`` to the printed latency.
+
+Exit codes: 0 written, 1 the procedure failed (target not found, non-monotone, camera), 2 usage.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import itertools
+import logging
 import sys
+import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from dffd.config import REPO_ROOT
+from dffd.config import REPO_ROOT, ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import focus_cost
-from dffd.core.lens import MM_PER_M, Lens
+from dffd.core.lens import MM_PER_M, Lens, LensError
+
+_LOGGER = logging.getLogger(__name__)
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -42,9 +66,22 @@ DEFAULT_SIM_CAMERA_FILE = REPO_ROOT / "config" / "sim-camera.toml"
 COARSE_POINTS = 33  # focus settings of the coarse sweep over the whole range
 FINE_POINTS = 17  # … of the fine sweep around the coarse minimum (± two coarse steps)
 FIT_HALF_WIDTH = 3  # points either side of the minimum used for the vertex fit
-# Mean absolute grey-level change that counts as "the image changed" after a focus step.
+# Image change: the largest change of an 8×8 block mean between two frames (a refocused edge
+# changes its blocks by tens of DN; averaging cuts the pixel noise 8×). "Changed" means more than
+# CHANGE_THRESHOLD_DN and NOISE_FACTOR × the largest such change between frames at rest.
+CHANGE_BLOCK_PX = 8
 CHANGE_THRESHOLD_DN = 0.5
+NOISE_FACTOR = 3.0
+NOISE_FRAMES = 4  # frames at the settled focus that give the noise floor
 LATENCY_MAX_FRAMES = 20  # give up counting after this many frames
+# Frames beyond the latency to wait after a Completion before a frame surely exposed after it.
+SETTLE_EXTRA_FRAMES = 2
+# Camera initialisation (the D100 takes ~10 s from standby, DESIGN §5) and one focus move.
+CAMERA_INIT_TIMEOUT_S = 30.0
+# A frame must arrive within this time from a V4L2 device (30 fps; a grabber may stall ~1 s).
+FRAME_TIMEOUT_S = 2.0
+
+Image = npt.NDArray[np.uint8]
 
 
 class CalibrationError(RuntimeError):
@@ -61,8 +98,38 @@ class DepthPoint:
     cost_min: float
 
 
+class Rig(Protocol):
+    """A camera with a controllable focus and a frame source, and a way to place the target."""
+
+    focal_length_mm: float
+    pixel_pitch_mm: float
+    zoom_counts: int | None
+    focus_range: tuple[int, int]  # far end … near end, counts
+
+    async def place_target(self, z_m: float) -> None:
+        """Have the (static) target at ``z_m`` metres on the optical axis."""
+        ...
+
+    async def frame_at(self, counts: int, settle_frames: int) -> Image:
+        """Move the focus to ``counts``; a gray frame exposed entirely after it settled."""
+        ...
+
+    async def step_focus(self, counts: int) -> float:
+        """Command a focus move without waiting; the monotonic time it was written."""
+        ...
+
+    async def next_frame(self) -> tuple[Image, float]:
+        """The next delivered gray frame and its delivery time (same clock as step_focus)."""
+        ...
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Add the ``dffd calibrate`` options."""
+    parser.add_argument(
+        "--config", type=Path, metavar="FILE",
+        help="lab procedure: the service config naming camera.port, capture.device and "
+        "lens.file (focal length, pixel pitch); an operator places the target at each depth",
+    )  # fmt: skip
     parser.add_argument("--sim", action="store_true", help="calibrate the simulated camera")
     parser.add_argument(
         "--sim-config", type=Path, default=DEFAULT_SIM_CAMERA_FILE, metavar="FILE",
@@ -74,17 +141,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument("--out", type=Path, metavar="FILE", help="write the lens TOML here")
     parser.add_argument("--name", default="calibrated", help="lens name in the TOML file")
+    parser.description = (
+        "Fit the focus counts <-> v table from focus sweeps with the target at known depths and "
+        "measure the capture latency. --sim: the simulated camera. --config FILE: the real "
+        "camera (serial port + video device of FILE); you are prompted to place the target at "
+        "each depth. Same procedure either way; see the module docstring."
+    )
+    parser.epilog = "Exit codes: 0 written, 1 calibration failed, 2 usage/config error."
 
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate; print the table and the latency; return the exit code."""
-    if not args.sim:
-        print(
-            "dffd calibrate: only --sim is implemented; the lab procedure on a real camera "
-            "(serial port + video device, target at known depths) is still to be written",
-            file=sys.stderr,
-        )
-        return EXIT_USAGE
     try:
         depths = sorted({float(z) for z in args.depths.split(",") if z.strip()})
     except ValueError:
@@ -93,24 +160,84 @@ def run(args: argparse.Namespace) -> int:
     if len(depths) < 2 or min(depths) <= 0:
         print("dffd calibrate: give at least two positive depths", file=sys.stderr)
         return EXIT_USAGE
-    rig = SimRig(args.sim_config)
+    if args.sim == (args.config is not None):
+        print(
+            "dffd calibrate: give either --sim (simulated camera) or --config FILE (the real "
+            "camera on FILE's camera.port and capture.device)",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
+    if args.sim:
+        return asyncio.run(_calibrate_and_report(SimRig(args.sim_config), depths, args))
     try:
-        points = [rig.sharpest(z) for z in depths]
-        lens = lens_from_points(args.name, rig.focal_length_mm, rig.pixel_pitch_mm, points)
-        latency = rig.latency_frames()
-    except CalibrationError as exc:
+        config = load_config(args.config)
+        rig = LabRig(config)
+    except (ConfigError, CalibrationError) as exc:
         print(f"dffd calibrate: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    for p in points:
-        print(f"z = {p.z_m:6.2f} m  sharpest counts {p.counts:6d}  v = {p.v_mm:.6f} mm")
-    print(f"capture latency: {latency} frame(s) in flight")
-    text = lens_toml(lens, rig.zoom_counts, latency)
-    if args.out is not None:
-        args.out.write_text(text, encoding="utf-8")
-        print(f"lens table written to {args.out}")
-    else:
-        print(text)
-    return EXIT_OK
+        return EXIT_USAGE
+    return asyncio.run(_lab(rig, depths, args))
+
+
+async def calibrate(rig: Rig, depths: list[float]) -> tuple[list[DepthPoint], int]:
+    """The procedure on any rig: the capture latency, then the sharpest setting per depth."""
+    await rig.place_target(depths[0])
+    latency = await measure_latency(rig)
+    settle = latency + SETTLE_EXTRA_FRAMES
+    points = []
+    for i, z in enumerate(depths):
+        if i:
+            await rig.place_target(z)
+        points.append(await sharpest(rig, z, settle))
+        _LOGGER.info("z = %.3f m: sharpest at %d counts", z, points[-1].counts)
+    return points, latency
+
+
+async def sharpest(rig: Rig, z_m: float, settle_frames: int) -> DepthPoint:
+    """Sweep the focus with the target at ``z_m``; the sharpest counts and its v."""
+    lo, hi = rig.focus_range
+    coarse = np.linspace(lo, hi, COARSE_POINTS)
+    costs = await _costs(rig, coarse, settle_frames)
+    if not np.isfinite(costs).any():
+        raise CalibrationError(
+            f"target not found at {z_m} m at any focus; check that it is in view and lit"
+        )
+    best = float(coarse[int(np.nanargmin(costs))])
+    step = (hi - lo) / (COARSE_POINTS - 1)
+    fine = np.linspace(max(lo, best - 2 * step), min(hi, best + 2 * step), FINE_POINTS)
+    fine_costs = await _costs(rig, fine, settle_frames)
+    ok = np.isfinite(fine_costs)
+    if ok.sum() < 3:
+        raise CalibrationError(f"target not measurable at {z_m} m; check the scene")
+    counts = round(vertex(fine[ok], fine_costs[ok]))
+    f = rig.focal_length_mm
+    z = z_m * MM_PER_M
+    return DepthPoint(z_m, counts, f * z / (z - f), float(np.nanmin(fine_costs)))
+
+
+async def measure_latency(rig: Rig) -> int:
+    """Frames delivered after a focus step before one shows it (the frames in flight)."""
+    lo, hi = rig.focus_range
+    prev = _blocks(await rig.frame_at(lo + (hi - lo) // 2, LATENCY_MAX_FRAMES))
+    noise = 0.0
+    for _ in range(NOISE_FRAMES):
+        image = _blocks((await rig.next_frame())[0])
+        noise = max(noise, float(np.abs(image - prev).max()))
+        prev = image
+    threshold = max(CHANGE_THRESHOLD_DN, NOISE_FACTOR * noise)
+    t_cmd = await rig.step_focus(lo)
+    in_flight = 0
+    for _ in range(LATENCY_MAX_FRAMES):
+        frame, delivered = await rig.next_frame()
+        image = _blocks(frame)
+        if delivered >= t_cmd:
+            if float(np.abs(image - prev).max()) > threshold:
+                return in_flight
+            in_flight += 1
+        prev = image
+    raise CalibrationError(
+        f"the image never changed after a focus step (threshold {threshold:.2f} DN); is the "
+        "target in view and the camera in manual focus?"
+    )
 
 
 def lens_from_points(
@@ -162,7 +289,7 @@ def vertex(counts: npt.NDArray[np.float64], costs: npt.NDArray[np.float64]) -> f
 
 
 class SimRig:
-    """The simulated camera in lock-step time, a static target at a chosen depth."""
+    """The simulated camera in lock-step virtual time, a static target at a chosen depth."""
 
     def __init__(self, sim_config: Path) -> None:
         from drivers.sim.config import load_sim_camera_config
@@ -173,90 +300,241 @@ class SimRig:
         lens = Lens.from_meta(_lens_meta(optics, self.config.zoom_counts))
         self.focal_length_mm = lens.focal_length_mm
         self.pixel_pitch_mm = lens.pixel_pitch_mm
-        self.zoom_counts = self.config.zoom_counts
+        self.zoom_counts: int | None = self.config.zoom_counts
         self.focus_range = (
             int(self.config.lens.focus_far_counts),
             int(self.config.lens.focus_near_counts),
         )
-        self._frame = 0  # frame index of the next sweep render (one per setting)
+        self._frame = 0  # frame index of the next render
         self._clock = _Clock()
+        self._source: Any = None
+        self._state: Any = None
+        self._z_m = 3.0
 
-    def sharpest(self, z_m: float) -> DepthPoint:
-        """Sweep the focus with the target at ``z_m``; the sharpest counts and its v."""
-        source, state = self._session(z_m)
-        lo, hi = self.focus_range
-        coarse = np.linspace(lo, hi, COARSE_POINTS)
-        costs = self._costs(source, state, coarse)
-        best = float(coarse[int(np.nanargmin(costs))])
-        step = (hi - lo) / (COARSE_POINTS - 1)
-        fine = np.linspace(max(lo, best - 2 * step), min(hi, best + 2 * step), FINE_POINTS)
-        fine_costs = self._costs(source, state, fine)
-        ok = np.isfinite(fine_costs)
-        if ok.sum() < 3:
-            raise CalibrationError(f"target not measurable at {z_m} m; check the scene")
-        counts = round(vertex(fine[ok], fine_costs[ok]))
-        f = self.focal_length_mm
-        z = z_m * MM_PER_M
-        return DepthPoint(z_m, counts, f * z / (z - f), float(np.nanmin(fine_costs)))
+    async def place_target(self, z_m: float) -> None:
+        """A fresh simulated session with the target at ``z_m``."""
+        self._z_m = z_m
+        self._source = None
 
-    def latency_frames(self) -> int:
-        """Frames delivered after a focus step before one shows it (the frames in flight)."""
-        source, state = self._session(3.0)
-        lo, hi = self.focus_range
-        fps = source.fps
-        k0 = 10
-        state.focus.jump(lo + (hi - lo) // 2, source.frame_time(0) - 1.0)
-        t_cmd = source.frame_time(k0) + 0.5 / fps  # between two exposures
-        state.focus.jump(lo, t_cmd)
-        prev = source.render_frame(k0).image.astype(np.float64)
-        k = k0 + 1
-        while k < k0 + LATENCY_MAX_FRAMES:
-            if source.delivery_time(k) < t_cmd:
-                prev = source.render_frame(k).image.astype(np.float64)
-                k += 1
-                continue
-            image = source.render_frame(k).image.astype(np.float64)
-            if float(np.abs(image - prev).mean()) > CHANGE_THRESHOLD_DN:
-                # Frames delivered after the command whose image had not changed yet.
-                in_flight = sum(1 for j in range(k0, k) if source.delivery_time(j) >= t_cmd)
-                return in_flight
-            prev = image
-            k += 1
-        raise CalibrationError("the image never changed after a focus step")
+    async def frame_at(self, counts: int, settle_frames: int) -> Image:
+        """The lens is at ``counts`` well before the next exposure (virtual time: no wait)."""
+        source, state = self._session()
+        k = self._frame
+        t = source.frame_time(k)
+        state.focus.jump(float(counts), t - 1.0)
+        return self._render(k)
 
-    def _session(self, z_m: float):  # type: ignore[no-untyped-def]
-        from drivers.sim.config import with_overrides
-        from drivers.sim.source import SimFrameSource, camera_state_for
+    async def step_focus(self, counts: int) -> float:
+        """Move the lens at once, between the two exposures around the last delivery time."""
+        source, state = self._session()
+        now = source.delivery_time(self._frame - 1)
+        period = 1.0 / source.fps
+        exposed = (now - source.frame_time(0)) // period  # last exposure mid before now
+        t_cmd = source.frame_time(int(exposed)) + 0.5 * period
+        state.focus.jump(float(counts), t_cmd)
+        return float(t_cmd)
 
-        cfg = with_overrides(
-            self.config,
-            {"world.trajectory": {"kind": "static", "position_m": (0.0, 0.0, z_m)}},
+    async def next_frame(self) -> tuple[Image, float]:
+        """The next frame in sequence and its delivery time."""
+        source, _ = self._session()
+        k = self._frame
+        return self._render(k), float(source.delivery_time(k))
+
+    def _render(self, k: int) -> Image:
+        source, _ = self._session()
+        self._frame = k + 1
+        self._clock.t = source.frame_time(k) + 1.0
+        image = source.render_frame(k).image
+        gray: Image = image if image.ndim == 2 else image[..., 1]
+        return gray
+
+    def _session(self) -> tuple[Any, Any]:
+        if self._source is None:
+            from drivers.sim.config import with_overrides
+            from drivers.sim.source import SimFrameSource, camera_state_for
+
+            cfg = with_overrides(
+                self.config,
+                {"world.trajectory": {"kind": "static", "position_m": (0.0, 0.0, self._z_m)}},
+            )
+            self._clock = _Clock()
+            self._state = camera_state_for(cfg, clock=self._clock)
+            self._source = SimFrameSource.from_config(cfg, self._state, t0=1.0)
+            self._frame = 0
+        return self._source, self._state
+
+
+class LabRig:
+    """The real camera: VISCA on ``camera.port``, frames from ``capture.device``, an operator."""
+
+    def __init__(
+        self, config: DffdConfig, prompt: Callable[[str], Awaitable[None]] | None = None
+    ) -> None:
+        from drivers.visca.camera import profile_for
+
+        if config.camera.driver != "visca" or config.capture.source != "v4l2":
+            raise CalibrationError(
+                "the lab procedure needs camera.driver = 'visca' with camera.port, and "
+                "capture.source = 'v4l2' with capture.device; use --sim for the simulator"
+            )
+        try:
+            lens = Lens.from_toml(config.lens.file)
+        except LensError as exc:
+            raise CalibrationError(
+                f"lens.file: {exc}; the lab procedure reuses its focal_length_mm and "
+                "pixel_pitch_mm (f is fixed at a fixed zoom): start from the datasheet values"
+            ) from exc
+        self.config = config
+        self.profile = profile_for(config.camera.model)
+        self.focal_length_mm = lens.focal_length_mm
+        self.pixel_pitch_mm = lens.pixel_pitch_mm
+        self.zoom_counts = (
+            config.lens.zoom_counts if config.lens.zoom_counts is not None else lens.zoom_counts
         )
-        clock = _Clock()
-        state = camera_state_for(cfg, clock=clock)
-        source = SimFrameSource.from_config(cfg, state, t0=1.0)
-        self._clock = clock
-        return source, state
+        self.focus_range = self.profile.focus_range
+        self._prompt = prompt or _ask_operator
+        self._camera: Any = None
+        self._source: Any = None
+        self._pending: asyncio.Task[None] | None = None
 
-    def _costs(self, source, state, settings: npt.NDArray[np.float64]):  # type: ignore[no-untyped-def]
-        out = np.full(len(settings), np.nan)
-        tracker = ContourTracker(TrackerConfig())
-        for i, c in enumerate(settings):
-            k = self._frame
-            self._frame += 1
-            t = source.frame_time(k)
-            state.focus.jump(float(c), t - 1.0)
-            self._clock.t = t + 1.0
-            frame = source.render_frame(k)
-            gray = frame.image if frame.image.ndim == 2 else frame.image[..., 1]
-            poly = find_target(gray)
-            if poly is None or not tracker.start(gray, poly, frame.t):
-                continue
-            obs = tracker.update(gray, frame.t, "translation")
-            cost = focus_cost(obs.peak_sq)
-            if cost is not None:
-                out[i] = cost[0]
-        return out
+    async def __aenter__(self) -> LabRig:
+        """Open the link and the device, initialise the camera (manual focus, the zoom)."""
+        from drivers.capture import CaptureSettings, OpenCVFrameSource
+        from drivers.visca.camera import Camera
+        from drivers.visca.link import ViscaLink
+
+        cfg = self.config
+        assert cfg.camera.port is not None  # validated with driver = 'visca'
+        assert cfg.capture.device is not None  # validated with source = 'v4l2'
+        self._link = ViscaLink(cfg.camera.port, cfg.camera.baudrate)
+        await self._link.__aenter__()
+        self._camera = Camera(self._link, cfg.camera.address, self.profile)
+        async with asyncio.timeout(CAMERA_INIT_TIMEOUT_S):
+            await self._camera.initialize()
+            if self.zoom_counts is not None:
+                await self._camera.zoom_direct(self.zoom_counts)
+        # latency_s = 0: frame.t is the delivery (read) time, the clock of step_focus.
+        settings = CaptureSettings(
+            device=cfg.capture.device, width=cfg.capture.width, height=cfg.capture.height,
+            fps=cfg.capture.fps, fourcc=cfg.capture.fourcc, latency_s=0.0,
+        )  # fmt: skip
+        self._source = OpenCVFrameSource(settings)
+        await self._source.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        """Close the device and the link."""
+        if self._pending is not None:
+            self._pending.cancel()
+        if self._source is not None:
+            await self._source.close()
+        await self._link.__aexit__(None, None, None)
+
+    async def place_target(self, z_m: float) -> None:
+        """Ask the operator to place the target and wait for Enter."""
+        await self._prompt(
+            f"Place the target {z_m:g} m from the camera on the optical axis, then press Enter: "
+        )
+
+    async def frame_at(self, counts: int, settle_frames: int) -> Image:
+        """Focus Direct, wait for Completion, skip the frames that may predate it."""
+        await self._finish_pending()
+        await self._camera.focus_direct(counts)
+        done = time.monotonic()
+        wait = settle_frames / self.config.capture.fps
+        while True:
+            image, delivered = await self.next_frame()
+            if delivered >= done + wait:
+                return image
+
+    async def step_focus(self, counts: int) -> float:
+        """Write Focus Direct now; its Completion is awaited before the next move."""
+        await self._finish_pending()
+        handle = await self._camera.start_focus_direct(counts)
+        t = time.monotonic()
+        self._pending = asyncio.ensure_future(_completion(handle))
+        return t
+
+    async def next_frame(self) -> tuple[Image, float]:
+        """The next frame from the device (gray) and its read time."""
+        async with asyncio.timeout(FRAME_TIMEOUT_S):
+            frame = await self._source.next_frame()
+        image: Image = frame.image if frame.image.ndim == 2 else frame.image[..., 1]
+        return image, float(frame.t)
+
+    async def _finish_pending(self) -> None:
+        if self._pending is not None:
+            task, self._pending = self._pending, None
+            await task
+
+
+# -- private helpers --------------------------------------------------------------------------
+async def _calibrate_and_report(rig: Rig, depths: list[float], args: argparse.Namespace) -> int:
+    try:
+        points, latency = await calibrate(rig, depths)
+        lens = lens_from_points(args.name, rig.focal_length_mm, rig.pixel_pitch_mm, points)
+    except CalibrationError as exc:
+        print(f"dffd calibrate: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    for p in points:
+        print(f"z = {p.z_m:6.2f} m  sharpest counts {p.counts:6d}  v = {p.v_mm:.6f} mm")
+    print(f"capture latency: {latency} frame(s) in flight")
+    text = lens_toml(lens, rig.zoom_counts, latency)
+    if args.out is not None:
+        args.out.write_text(text, encoding="utf-8")
+        print(f"lens table written to {args.out}")
+    else:
+        print(text)
+    return EXIT_OK
+
+
+async def _lab(rig: LabRig, depths: list[float], args: argparse.Namespace) -> int:
+    from drivers.frames import FrameSourceError
+    from drivers.visca.errors import ViscaError
+
+    try:
+        async with rig:
+            return await _calibrate_and_report(rig, depths, args)
+    except (ViscaError, FrameSourceError, TimeoutError, OSError) as exc:
+        print(
+            f"dffd calibrate: camera or video device failed: {exc}; check camera.port, "
+            "capture.device, the cables and that the camera is powered",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+
+
+def _blocks(image: Image) -> npt.NDArray[np.float64]:
+    """Means of CHANGE_BLOCK_PX² blocks (the image cropped to whole blocks)."""
+    b = CHANGE_BLOCK_PX
+    h, w = image.shape[0] // b * b, image.shape[1] // b * b
+    cropped = image[:h, :w].astype(np.float64)
+    means: npt.NDArray[np.float64] = cropped.reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+    return means
+
+
+async def _completion(handle: Any) -> None:
+    await handle.completed()
+
+
+async def _ask_operator(text: str) -> None:
+    await asyncio.to_thread(input, text)
+
+
+async def _costs(rig: Rig, settings: npt.NDArray[np.float64], settle: int) -> npt.NDArray[Any]:
+    out = np.full(len(settings), np.nan)
+    tracker = ContourTracker(TrackerConfig())
+    for i, c in enumerate(settings):
+        gray = await rig.frame_at(round(float(c)), settle)
+        t = float(i)
+        poly = find_target(gray)
+        if poly is None or not tracker.start(gray, poly, t):
+            continue
+        obs = tracker.update(gray, t, "translation")
+        cost = focus_cost(obs.peak_sq)
+        if cost is not None:
+            out[i] = cost[0]
+    return out
 
 
 class _Clock:
@@ -278,10 +556,15 @@ def _lens_meta(optics: object, zoom_counts: int) -> dict[str, object]:
 __all__ = [
     "CalibrationError",
     "DepthPoint",
+    "LabRig",
+    "Rig",
     "SimRig",
+    "calibrate",
     "configure_parser",
     "lens_from_points",
     "lens_toml",
+    "measure_latency",
     "run",
+    "sharpest",
     "vertex",
 ]

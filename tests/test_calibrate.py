@@ -11,12 +11,17 @@ from dffd.calibrate import (
     DEFAULT_SIM_CAMERA_FILE,
     CalibrationError,
     DepthPoint,
+    LabRig,
     SimRig,
+    calibrate,
     configure_parser,
     lens_from_points,
+    measure_latency,
     run,
+    sharpest,
     vertex,
 )
+from dffd.config import load_config
 from dffd.core.lens import Lens
 
 TRUTH = Lens.from_toml(Path(__file__).resolve().parent.parent / "config/lenses/sim-evi-d100.toml")
@@ -42,13 +47,31 @@ def test_non_monotone_points_are_refused() -> None:
         lens_from_points("x", 31.0, 0.005, points)
 
 
-def test_sim_sweep_matches_the_ground_truth_and_latency() -> None:
+async def test_sim_sweep_matches_the_ground_truth_and_latency() -> None:
     rig = SimRig(DEFAULT_SIM_CAMERA_FILE)
     for z in (1.5, 4.0, 10.0):
-        point = rig.sharpest(z)
+        await rig.place_target(z)
+        point = await sharpest(rig, z, settle_frames=3)
         assert abs(point.counts - TRUTH.counts_for_depth(z)) <= COUNTS_TOL, (z, point)
         assert point.v_mm == pytest.approx(TRUTH.v_from_depth(z))
-    assert rig.latency_frames() == round(rig.config.capture.capture_latency_frames)
+    await rig.place_target(3.0)
+    assert await measure_latency(rig) == round(rig.config.capture.capture_latency_frames)
+
+
+async def test_the_procedure_places_the_target_at_each_depth_in_order() -> None:
+    """The lab and --sim share calibrate(); the rig is asked for each depth, latency first."""
+    placed: list[float] = []
+
+    class Recording(SimRig):
+        async def place_target(self, z_m: float) -> None:
+            placed.append(z_m)
+            await super().place_target(z_m)
+
+    points, latency = await calibrate(Recording(DEFAULT_SIM_CAMERA_FILE), [2.0, 6.0])
+    assert placed == [2.0, 6.0]
+    assert [p.z_m for p in points] == [2.0, 6.0]
+    assert points[0].counts > points[1].counts  # nearer = more counts (towards 0x8400)
+    assert latency == 1
 
 
 def test_cli_writes_a_loadable_lens_file(tmp_path: Path) -> None:
@@ -62,4 +85,24 @@ def test_cli_writes_a_loadable_lens_file(tmp_path: Path) -> None:
     assert lens.depth_from_v(lens.v_from_counts(TRUTH.counts_for_depth(5.0))) == pytest.approx(
         5.0, rel=0.03
     )
-    assert run(parser.parse_args(["--depths", "2,5"])) == 2  # hardware mode: not implemented
+    assert run(parser.parse_args(["--depths", "2,5"])) == 2  # neither --sim nor --config
+
+
+def test_lab_mode_needs_a_visca_camera_and_a_video_device(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    sim_only = tmp_path / "sim.toml"
+    sim_only.write_text("[camera]\ndriver = 'sim'\n", encoding="utf-8")
+    assert run(parser.parse_args(["--config", str(sim_only), "--depths", "2,5"])) == 2
+    assert "camera.driver = 'visca'" in capsys.readouterr().err
+    lab = tmp_path / "lab.toml"
+    lab.write_text(
+        "[camera]\ndriver = 'visca'\nport = '/dev/null-visca'\n"
+        "[capture]\nsource = 'v4l2'\ndevice = '/dev/null-video'\n",
+        encoding="utf-8",
+    )
+    rig = LabRig(load_config(lab))
+    assert rig.focus_range == (0x1000, 0x8400)  # EVI-D100 profile
+    assert rig.focal_length_mm == TRUTH.focal_length_mm  # reused from lens.file
