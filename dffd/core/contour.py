@@ -490,7 +490,8 @@ class _GradientCache:
             box = (max(x0 - slack, 0), max(y0 - slack, 0), min(x1 + slack, w), min(y1 + slack, h))
             self._gx, self._gy = gradient(self._gray[box[1] : box[3], box[0] : box[2]], self._sigma)
             self._box = box
-        assert self._gx is not None and self._gy is not None
+        assert self._gx is not None
+        assert self._gy is not None
         return self._gx, self._gy, box[0], box[1]
 
 
