@@ -225,9 +225,9 @@ def _stats(times: Sequence[float]) -> dict[str, Any]:
 def _print(res: dict[str, Any]) -> None:
     def line(label: str, s: dict[str, Any]) -> str:
         if not s.get("n"):
-            return f"{label:<44s} (no frames)"
+            return f"{label:<48s} (no frames)"
         return (
-            f"{label:<44s} n {s['n']:4d}  mean {s['mean_ms']:6.3f} ms  p50 {s['p50_ms']:6.3f}  "
+            f"{label:<48s} n {s['n']:4d}  mean {s['mean_ms']:6.3f} ms  p50 {s['p50_ms']:6.3f}  "
             f"p95 {s['p95_ms']:6.3f}  max {s['max_ms']:6.3f}"
         )
 
