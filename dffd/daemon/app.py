@@ -16,9 +16,21 @@ the pure :class:`~dffd.scheduler.Scheduler` and the estimation core. Layout at r
 
 Without ``--config`` (or with ``camera.driver = "sim"``) the camera is the simulator: its VISCA
 device on a real pty (:class:`~drivers.sim.server.SimCameraServer`), its renderer as the frame
-source, the world of ``sim.scenario``, ground truth on ``…/sim/truth``; ``mqtt.url = "embedded"``
-starts the embedded amqtt broker on 127.0.0.1. With a config naming a serial port, a video
-device and a broker it is the lab service.
+source, ground truth on ``…/sim/truth``; ``mqtt.url = "embedded"`` starts the embedded amqtt
+broker on 127.0.0.1. The world is ``sim.scenario``'s ``[target]`` and ``[trajectory]`` tables (a
+name read from ``hil/scenarios/<name>.toml`` of this tree, or a file path) applied to the
+simulated camera's own config types (``drivers.sim.config``), ``sim.start_phase_deg`` overriding
+the start phase (the default demo starts the circle at its far point). With a config naming a
+serial port, a video device (``[capture]`` → :class:`drivers.capture.OpenCVFrameSource`) and a
+broker it is the lab service.
+
+Acquisition (the same live and on the simulator): the lens goes to
+``scheduler.initial_focus_depth_m``; while the core is not tracking only frames exposed at a
+stationary focus reach it (a contour started on a frame blurred by focus travel is lost within a
+few frames); bursts start after ``acquire_stable_frames`` frames with a contour; pan/tilt follows
+with velocity feed-forward from the first two centroids; after a loss the head searches along the
+target's predicted path, then returns to where it was last seen, while the core keeps searching
+(see :mod:`dffd.scheduler`).
 
 Shutdown (SIGTERM/SIGINT): stop pan/tilt, publish the retained ``offline`` status, flush the
 JSONL log, exit 0 — all within :data:`SHUTDOWN_TIMEOUT_S`. sd_notify READY is sent once the
