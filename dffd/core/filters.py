@@ -286,10 +286,12 @@ class DepthKF:
         # Φ P Φᵀ + Q with Φ = [[ratio, g], [0, 1]], written out (a 2×2 per frame)
         a00, a01 = ratio * p00 + g * p10, ratio * p01 + g * p11
         self.x = np.array([ratio * z + g * b, b])
-        self.p = np.array([
-            [a00 * ratio + a01 * g + qz + qb * dt**3 / 3, a01 + qb * dt**2 / 2],
-            [p10 * ratio + p11 * g + qb * dt**2 / 2, p11 + qb * dt],
-        ])
+        self.p = np.array(
+            [
+                [a00 * ratio + a01 * g + qz + qb * dt**3 / 3, a01 + qb * dt**2 / 2],
+                [p10 * ratio + p11 * g + qb * dt**2 / 2, p11 + qb * dt],
+            ]
+        )
 
     def update(self, y: float, sigma_y: float) -> float:
         """Correct with a depth measurement ``y`` of standard deviation ``sigma_y``; innovation."""

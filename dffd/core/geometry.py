@@ -39,10 +39,12 @@ def camera_point(
 def world_rotation(pan_deg: float, tilt_deg: float) -> FloatArray:
     """Rotation taking camera-frame vectors to the world frame."""
     p, t = math.radians(pan_deg), math.radians(tilt_deg)
-    r_pan = np.array([[math.cos(p), 0.0, math.sin(p)], [0.0, 1.0, 0.0],
-                      [-math.sin(p), 0.0, math.cos(p)]])
-    r_tilt = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(t), -math.sin(t)],
-                       [0.0, math.sin(t), math.cos(t)]])
+    r_pan = np.array(
+        [[math.cos(p), 0.0, math.sin(p)], [0.0, 1.0, 0.0], [-math.sin(p), 0.0, math.cos(p)]]
+    )
+    r_tilt = np.array(
+        [[1.0, 0.0, 0.0], [0.0, math.cos(t), -math.sin(t)], [0.0, math.sin(t), math.cos(t)]]
+    )
     return np.asarray(r_pan @ r_tilt, dtype=np.float64)
 
 
