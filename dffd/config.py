@@ -84,6 +84,7 @@ SCENARIO_NAMES = ("static", "approach", "paper-circle", "figure-eight", "random"
 SCENARIO_DIR = REPO_ROOT / "hil" / "scenarios"
 EstimatorName = Literal["lpv", "kf", "cf2", "cf1"]
 BurstPolicy = Literal["every_n", "sigma"]
+BurstMode = Literal["rolling", "classic"]
 PanTiltMode = Literal["drive", "absolute", "off"]
 LogLevel = Literal["DEBUG", "INFO", "WARNING", "ERROR"]
 
@@ -190,7 +191,12 @@ class SchedulerConfig(_Section):
     """``[scheduler]``: when to take bursts, how to acquire and keep the target centred."""
 
     burst_policy: BurstPolicy = "every_n"
-    burst_every_n_frames: Annotated[int, Field(ge=1, le=1000)] = 10
+    burst_mode: BurstMode = Field(
+        default="rolling",
+        description="rolling: focus triangle lo, mid, hi, mid, …, a burst at every end; "
+        "classic: mid → end → end → mid per burst",
+    )
+    burst_every_n_frames: Annotated[int, Field(ge=1, le=1000)] = 2
     sigma_threshold_m: Annotated[float, Field(gt=0, le=10)] = 0.05
     sigma_max_interval_frames: Annotated[int, Field(ge=1, le=10_000)] = Field(
         default=90,

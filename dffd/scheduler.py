@@ -67,9 +67,12 @@ import itertools
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from dffd.core.types import FrameTag
+
+if TYPE_CHECKING:
+    from dffd.config import DffdConfig
 
 # -- VISCA link facts (DESIGN §5) -------------------------------------------------------------
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
@@ -99,8 +102,18 @@ FOCUS_HISTORY = 64
 MAX_VELOCITY_GAP_S = 0.5
 # Burst completion times kept for the achieved-rate estimate.
 RATE_WINDOW = 64
+# Exposure times of recent transit tags: the estimator's feedback arrives a few frames late at
+# most (capture latency + estimator queue), far fewer than this.
+TRANSIT_HISTORY = 32
 
 PanTiltMode = Literal["drive", "absolute", "off"]
+BurstMode = Literal["rolling", "classic"]
+# Slot number in the tag of a rolling burst's end frame: it closes a burst whose slots 0 and 1 are
+# the previous end (the other side of the bracket) and the tracking frame at the middle between.
+ROLLING_SLOT = 2
+# A rolling end closes a burst only if the previous end was this recent (s); an older one (a
+# recovery, a loss, a policy pause in between) opens a new sequence instead.
+ROLLING_MAX_SPAN_S = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,7 +129,11 @@ class SchedulerConfig:
     # Bound on the error of frame timestamps (s): a frame counts as exposed off a focus move only
     # with this much to spare either side; covers capture timestamp jitter and reply transit.
     timing_margin_s: float = 0.003
-    # Burst policy.
+    # Burst policy. ``classic``: three settings mid → end → end → mid per burst, then
+    # ``burst_every_frames`` tracking frames. ``rolling``: a triangle lo, mid, hi, mid, lo, … with
+    # ``max(1, burst_every_frames)`` tracking frames at each pass through the middle; every
+    # arrival at an end closes a burst with the previous end and the middle frame between.
+    burst_mode: BurstMode = "classic"
     burst_every_frames: int = 10
     sigma_trigger_m: float | None = None
     snap_counts: int = 40
@@ -160,6 +177,8 @@ class SchedulerConfig:
             raise ValueError(f"exposure_s must be in (0, 1/fps] (got {self.exposure_s})")
         if self.burst_every_frames < 0:
             raise ValueError(f"burst_every_frames must be >= 0 (got {self.burst_every_frames})")
+        if self.burst_mode not in ("rolling", "classic"):
+            raise ValueError(f"burst_mode must be 'rolling' or 'classic' (got {self.burst_mode!r})")
         if self.focus_speed_counts_per_s <= 0:
             raise ValueError("focus_speed_counts_per_s must be > 0")
         if self.baudrate <= 0:
@@ -187,6 +206,56 @@ class SchedulerConfig:
     def exposure(self) -> float:
         """Exposure duration used for tagging (s)."""
         return self.exposure_s if self.exposure_s is not None else self.period_s
+
+
+def config_from_settings(
+    settings: DffdConfig,
+    *,
+    fps: float,
+    exposure_s: float | None,
+    focus_speed_counts_per_s: float,
+    focal_length_mm: float,
+    pixel_pitch_mm: float,
+    frame_size: tuple[int, int],
+    baudrate: int | None = None,
+) -> SchedulerConfig:
+    """The scheduler configuration from ``[scheduler]``/``[capture]``/``[camera]`` and the facts
+    of the running camera (its frame rate, exposure, focus speed, lens and frame size).
+
+    The one place that maps the settings: the daemon and the bench's lock-step runs both call it,
+    so they cannot diverge. ``baudrate`` defaults to ``[camera] baudrate``.
+    """
+    sc = settings.scheduler
+    sigma_policy = sc.burst_policy == "sigma"
+    exposure = None if exposure_s is None else min(exposure_s, 1.0 / fps)
+    return SchedulerConfig(
+        fps=fps,
+        exposure_s=exposure,
+        capture_latency_frames=math.ceil(settings.capture.latency_frames),
+        timing_margin_s=sc.timing_margin_s,
+        burst_mode=sc.burst_mode,
+        # sigma policy: a burst when σ of ẑ exceeds the threshold, and otherwise only after
+        # sigma_max_interval_frames (so a filter that under-reports σ cannot starve it).
+        burst_every_frames=sc.sigma_max_interval_frames if sigma_policy else (
+            sc.burst_every_n_frames
+        ),
+        sigma_trigger_m=sc.sigma_threshold_m if sigma_policy else None,
+        focus_speed_counts_per_s=focus_speed_counts_per_s,
+        baudrate=settings.camera.baudrate if baudrate is None else baudrate,
+        focal_length_mm=focal_length_mm,
+        pixel_pitch_mm=pixel_pitch_mm,
+        frame_size=frame_size,
+        pan_tilt_mode=sc.pan_tilt_mode,
+        pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
+        pan_tilt_feedforward=sc.pan_tilt_feedforward,
+        pan_tilt_lost_s=sc.pan_tilt_lost_s,
+        pan_tilt_search_s=sc.pan_tilt_search_s,
+        acquire_stable_frames=sc.acquire_stable_frames,
+        pan_tilt_deadband_deg=pixel_offset_to_deg(
+            sc.pan_tilt_deadband_px, focal_length_mm, pixel_pitch_mm
+        ),
+        pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
+    )  # fmt: skip
 
 
 # -- actions ----------------------------------------------------------------------------------
@@ -245,6 +314,7 @@ class SchedulerStats:
     bursts_started: int = 0
     bursts_completed: int = 0
     bursts_incomplete: int = 0
+    rolling_openings: int = 0  # rolling ends with no previous end to close a burst with
     focus_moves: int = 0
     focus_failures: int = 0
     focus_inquiries: int = 0
@@ -284,24 +354,37 @@ def focus_move_time_s(config: SchedulerConfig, delta_counts: int) -> float:
 def depth_rate_limit(
     config: SchedulerConfig, spacing_counts: int, *, predictive: bool = True
 ) -> RateLimit:
-    """Theoretical depth measurements per second for bursts ``c−s, c, c+s`` (DESIGN §8).
+    """Theoretical depth measurements per second for brackets ``c−s, c, c+s`` (DESIGN §8).
 
-    One cycle: the burst's slot at the tracking focus, a move of ``s`` to one side, ``2s`` to
-    the other, ``s`` back, then ``burst_every_frames`` tracking frames. A move issued when a
-    claimed exposure ends (+margin) and completed ``t_move`` later makes the next usable exposure
-    ``ceil((E + 2·guard + t_move)/T)`` periods after the claimed one. Without prediction the
-    move waits for the claimed frame to be delivered: the capture latency adds to every move.
+    A move issued when a claimed exposure ends (+margin) and completed ``t_move`` later makes the
+    next usable exposure ``ceil((E + 2·guard + t_move)/T)`` periods after the claimed one. Without
+    prediction the move waits for the claimed frame to be delivered: the capture latency adds to
+    every move.
+
+    ``classic``: one cycle is the burst's slot at the tracking focus, a move of ``s`` to one side,
+    ``2s`` to the other, ``s`` back, then ``burst_every_frames`` tracking frames.
+    ``rolling``: one cycle is a move of ``s`` from the middle to an end (its frame closes a
+    burst) and ``s`` back, plus the tracking frames at the middle beyond the first
+    (``max(1, burst_every_frames) − 1``): a depth every two half-bracket moves.
     """
     spacing = abs(int(spacing_counts))
     period = config.period_s
     wait = config.exposure + 2.0 * config.guard_s
     if not predictive:
         wait += config.capture_latency_frames * period
-    moves = (spacing, 2 * spacing, spacing) if spacing else ()
+    rolling = config.burst_mode == "rolling"
+    if rolling:
+        moves: tuple[int, ...] = (spacing, spacing) if spacing else ()
+    else:
+        moves = (spacing, 2 * spacing, spacing) if spacing else ()
     move_s = tuple(focus_move_time_s(config, d) for d in moves)
     move_frames = tuple(max(1, math.ceil((wait + t) / period - 1e-9)) for t in move_s)
-    # A zero spacing means three frames at one setting (degenerate but well defined).
-    cycle = sum(move_frames) + config.burst_every_frames + (0 if moves else 3)
+    if rolling:
+        # A zero spacing still takes the end's frame and a middle frame (two periods).
+        cycle = sum(move_frames) + max(1, config.burst_every_frames) - 1 + (0 if moves else 2)
+    else:
+        # A zero spacing means three frames at one setting (degenerate but well defined).
+        cycle = sum(move_frames) + config.burst_every_frames + (0 if moves else 3)
     return RateLimit(
         depth_hz=config.fps / cycle,
         cycle_frames=cycle,
@@ -385,6 +468,9 @@ class _Burst:
     claims: list[float] = field(default_factory=list)  # predicted exposure mid-time per slot
     tagged: list[bool] = field(default_factory=list)
     start_at: float = -math.inf  # first move not before (the last tracking exposure's end)
+    tag_slots: tuple[int, ...] = ()  # slot numbers in the tags (default: 0, 1, 2, …)
+    rolling: bool = False
+    side: int = 0  # rolling: +1 the plan's high end, −1 its low end
 
 
 Phase = Literal[
@@ -429,6 +515,12 @@ class Scheduler:
         self._burst_now = False
         self._stable = 0  # consecutive frames with a centroid (acquisition)
         self._centroid_t = -math.inf
+        # Rolling bracket: the side of the next end (+1 high counts, −1 low), when the last end
+        # was tagged, and whether a tracking frame (the middle) was tagged since.
+        self._rolling_side = -1
+        self._rolling_end_t: float | None = None
+        self._track_since_end = False
+        self._transit_ts: deque[float] = deque(maxlen=TRANSIT_HISTORY)
         # Pan/tilt.
         self._pt = _PanTilt(config)
 
@@ -495,6 +587,10 @@ class Scheduler:
                 tag = FrameTag("transit", None, pan, tilt)
             else:
                 tag = FrameTag("track", counts, pan, tilt)
+        if tag.role == "track":
+            self._track_since_end = True
+        elif tag.role == "transit":
+            self._transit_ts.append(t)
         self._drop_missed_claims(t)
         self._last_tagged_mid = max(self._last_tagged_mid, t)
         self.stats.frames[tag.role] += 1
@@ -564,7 +660,7 @@ class Scheduler:
         t: float,
         *,
         sigma_m: float | None,
-        plan: tuple[int, int, int] | None,
+        plan: tuple[int, ...] | None,
         centroid_px: tuple[float, float] | None,
         pan_deg: float | None = None,
         tilt_deg: float | None = None,
@@ -584,11 +680,26 @@ class Scheduler:
             self._stable = 0  # not acquired yet, or lost: acquire again before bursts
         if self._stable < need:
             plan = None  # acquire first: no bursts until the contour has been stable a while
+        elif plan is None and centroid_px is not None and t in self._transit_ts:
+            # The core plans from a known focus: a transit frame of a tracked target has no plan
+            # of its own, which must not cancel the last one (measured: the rolling bracket lost
+            # one frame per pass waiting for the next tracking frame's plan).
+            plan = self._plan
         if plan is not None:
             self._plan = tuple(sorted(int(c) for c in plan))
             self._track_counts = self._plan[len(self._plan) // 2]
         else:
             self._plan = None
+        self._feedback_pan_tilt(t, sigma_m, centroid_px, pan_deg, tilt_deg)
+
+    def _feedback_pan_tilt(
+        self,
+        t: float,
+        sigma_m: float | None,
+        centroid_px: tuple[float, float] | None,
+        pan_deg: float | None,
+        tilt_deg: float | None,
+    ) -> None:
         limit = self.config.sigma_trigger_m
         if limit is not None and sigma_m is not None and sigma_m > limit:
             self._burst_now = True
@@ -677,6 +788,12 @@ class Scheduler:
             assert burst is not None
             if now < burst.start_at:
                 return None
+            if burst.rolling and self._plan is not None:
+                # The end's counts are fixed only now, from the latest plan: the claimed frame is
+                # a tracking frame, and the plan of the frame before it (delivered by now) carries
+                # the burst the core fitted there (committing at the claim used a plan one burst
+                # older: measured raw z_m std 30 → 45 mm on paper-circle).
+                burst.order = (self._plan[-1] if burst.side > 0 else self._plan[0],)
             return self._issue_move(burst.order[0], now, "burst_move")
         if self._phase == "burst_dwell":
             burst = self._burst
@@ -760,21 +877,36 @@ class Scheduler:
                 return eligible
             latest = self._last_mid_ending_before(now - self.config.guard_s)
             return max(eligible, latest)
-        return max(eligible, first + self.config.burst_every_frames * self._period)
+        every = self.config.burst_every_frames
+        if self.config.burst_mode == "rolling":
+            # The claimed exposure is the last of the tracking frames at the middle.
+            every = max(1, every) - 1
+        return max(eligible, first + every * self._period)
 
     def _start_burst(self, now: float) -> Action | None:
         assert self._plan is not None
         assert self._counts is not None
         claim_mid = self._track_claim_mid(now)
         current = self._counts
-        settings = list(self._plan)
-        # Take a planned setting where the lens already is (the tag carries the real counts).
-        nearest = min(range(len(settings)), key=lambda i: abs(settings[i] - current))
-        if abs(settings[nearest] - current) <= self._snap_threshold():
-            settings[nearest] = current
-        home = self._track_counts if self._track_counts is not None else current
-        order = order_settings(current, tuple(settings), home, self.config)
-        burst = _Burst(self._next_burst_id, order)
+        if self.config.burst_mode == "rolling":
+            # One end per burst, alternating sides: with the previous end and the middle frame
+            # between them it makes three settings (the core assembles them).
+            end = self._plan[-1] if self._rolling_side > 0 else self._plan[0]
+            self._rolling_side = -self._rolling_side
+            order: tuple[int, ...] = (end,)
+            burst = _Burst(
+                self._next_burst_id, order, tag_slots=(ROLLING_SLOT,), rolling=True,
+                side=-self._rolling_side,
+            )  # fmt: skip
+        else:
+            settings = list(self._plan)
+            # Take a planned setting where the lens already is (the tag carries the real counts).
+            nearest = min(range(len(settings)), key=lambda i: abs(settings[i] - current))
+            if abs(settings[nearest] - current) <= self._snap_threshold():
+                settings[nearest] = current
+            home = self._track_counts if self._track_counts is not None else current
+            order = order_settings(current, tuple(settings), home, self.config)
+            burst = _Burst(self._next_burst_id, order)
         self._next_burst_id += 1
         self._burst = burst
         self._pending.append(burst)
@@ -864,6 +996,8 @@ class Scheduler:
         if burst in self._pending:
             self._pending.remove(burst)
             self.stats.bursts_incomplete += 1
+        if burst.rolling:
+            self._rolling_end_t = None  # the core lacks that end: the next one opens anew
         if burst is self._burst:
             self._burst = None
             if self._phase in ("burst_dwell", "burst_wait"):
@@ -934,11 +1068,24 @@ class Scheduler:
                     continue
                 burst.tagged[slot] = True
                 if len(burst.claims) == len(burst.order) and all(burst.tagged):
-                    self.stats.bursts_completed += 1
-                    self._burst_times.append(t)
                     self._pending.remove(burst)
-                return (burst.burst_id, slot)
+                    if not burst.rolling or self._closes_rolling(t):
+                        self.stats.bursts_completed += 1
+                        self._burst_times.append(t)
+                    else:
+                        self.stats.rolling_openings += 1
+                tag_slot = burst.tag_slots[slot] if burst.tag_slots else slot
+                return (burst.burst_id, tag_slot)
         return None
+
+    def _closes_rolling(self, t: float) -> bool:
+        """A rolling end tagged at ``t`` closes a burst (a recent previous end, a middle frame
+        between); either way it becomes the previous end of the next one."""
+        prev = self._rolling_end_t
+        closes = prev is not None and t - prev <= ROLLING_MAX_SPAN_S and self._track_since_end
+        self._rolling_end_t = t
+        self._track_since_end = False
+        return closes
 
     def _inside_burst(self, t: float) -> bool:
         """``t`` lies after a burst's first claimed exposure and before its last one."""

@@ -43,8 +43,8 @@ from dffd.scheduler import (
     FocusMove,
     Scheduler,
     SchedulerConfig,
+    config_from_settings,
     depth_rate_limit,
-    pixel_offset_to_deg,
 )
 from drivers.frames import Frame
 from drivers.sim.device import ViscaDevice
@@ -69,8 +69,6 @@ Progress = Callable[[float], None]  # fraction of the session's scenario time do
 
 # Ground truth per frame kept for scoring measurements of past bursts.
 TRUTH_HISTORY_FRAMES = 256
-# The initial tracking focus (before any depth is known): the middle of the working range.
-INITIAL_FOCUS_DEPTH_M = 4.0
 # Sweep window half-size (px) around the target: this many equivalent radii plus a margin, so the
 # whole defocused edge stays inside (largest blur radius at the range ends ≈ target radius).
 SWEEP_WINDOW_RADII = 2.5
@@ -121,25 +119,20 @@ def daemon_config() -> DffdConfig:
 def scheduler_config(
     session: SimSession, lens: Lens, config: DffdConfig, overrides: dict[str, Any]
 ) -> SchedulerConfig:
-    """The scheduler configuration, built as ``dffd.daemon.app`` builds it (+ overrides)."""
-    sc = config.scheduler
-    base = SchedulerConfig(
+    """The scheduler configuration, built by the daemon's own builder (+ overrides).
+
+    The simulated camera supplies what the daemon reads off the real one: frame rate, exposure,
+    focus speed, frame size and the link's baud rate.
+    """
+    base = config_from_settings(
+        config,
         fps=session.fps,
-        exposure_s=min(session.exposure_s, 1.0 / session.fps),
-        capture_latency_frames=math.ceil(config.capture.latency_frames),
-        burst_every_frames=sc.burst_every_n_frames,
-        sigma_trigger_m=sc.sigma_threshold_m if sc.burst_policy == "sigma" else None,
+        exposure_s=session.exposure_s,
         focus_speed_counts_per_s=session.device_config.focus_speed_counts_s,
-        baudrate=session.device_config.baud,
         focal_length_mm=lens.focal_length_mm,
         pixel_pitch_mm=lens.pixel_pitch_mm,
         frame_size=session.frame_size,
-        pan_tilt_mode="drive" if sc.pan_tilt_kp_per_s > 0 else "off",
-        pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
-        pan_tilt_deadband_deg=pixel_offset_to_deg(
-            sc.pan_tilt_deadband_px, lens.focal_length_mm, lens.pixel_pitch_mm
-        ),
-        pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
+        baudrate=session.device_config.baud,
     )
     return dataclasses.replace(base, **overrides) if overrides else base
 
@@ -157,7 +150,15 @@ def pipeline_config(scenario: Scenario, config: DffdConfig) -> PipelineConfig:
         rho_max=est.lpv_rho_max_per_s,
         settle_s=scenario.settle_s,
     )
-    return dataclasses.replace(base, **scenario.estimator) if scenario.estimator else base
+    if not scenario.estimator:
+        return base
+    overrides = dict(scenario.estimator)
+    # Nested sections given as tables (``--set estimator.plan={outer_blur_px=2.0}``) update the
+    # defaults field by field.
+    for name in ("plan", "fit", "tracker", "kf_noise"):
+        if isinstance(overrides.get(name), dict):
+            overrides[name] = dataclasses.replace(getattr(base, name), **overrides[name])
+    return dataclasses.replace(base, **overrides)
 
 
 class _Runner:
@@ -184,7 +185,9 @@ class _Runner:
         self.pipeline = Pipeline(pipeline_config(scenario, dcfg), self.lens)
         self.sched_config = scheduler_config(session, self.lens, dcfg, scenario.scheduler)
         self.scheduler = Scheduler(self.sched_config)
-        self.scheduler.set_track_focus(self.lens.counts_for_depth(INITIAL_FOCUS_DEPTH_M))
+        self.scheduler.set_track_focus(
+            self.lens.counts_for_depth(dcfg.scheduler.initial_focus_depth_m)
+        )
         mode = "fast" if policy == "dffd" else f"fast-{policy}"
         self.result = RunResult(
             scenario=scenario.name,

@@ -700,3 +700,99 @@ def test_feedforward_follows_a_moving_target_and_missing_centroids_do_not_stop()
     back = [a for a in s.next_actions(late + 0.1) if isinstance(a, PanTiltAbsolute)]
     assert len(back) == 1
     assert back[0].pan_deg == pytest.approx(10.0 * 9 / 30, abs=0.3)
+
+
+# -- rolling bracket ---------------------------------------------------------------------------
+ROLL = replace(BASE, burst_mode="rolling", burst_every_frames=1, exposure_s=0.004)
+
+
+def test_rolling_rate_limit_by_hand() -> None:
+    # E = 4 ms, guards 2×6 ms: a 3000-count move takes 9.4+16.7+150+3.1 = 179.2 ms → 195.2 ms
+    # → 6 periods; mid → end → mid with one tracking frame: 12 frames a depth.
+    limit = depth_rate_limit(ROLL, 3000)
+    assert limit.move_frames == (6, 6)
+    assert limit.cycle_frames == 12
+    assert limit.depth_hz == pytest.approx(2.5)
+    assert depth_rate_limit(replace(ROLL, burst_every_frames=3), 3000).cycle_frames == 14
+    # The classic burst at the same spacing: mid → end → end → mid (6+11+6) + its track frames.
+    classic = depth_rate_limit(replace(ROLL, burst_mode="classic"), 3000)
+    assert classic.cycle_frames == 6 + 11 + 6 + 1
+
+
+@pytest.mark.parametrize("every", [1, 2, 4])
+def test_rolling_tags_alternate_ends_and_reach_the_rate_limit(every: int) -> None:
+    cfg = replace(ROLL, burst_every_frames=every)
+    plan = (2000, 5000, 8000)
+    h = Harness(cfg, plan=plan)
+    h.run(5.0)
+    assert h.wrong == []
+    ends = [(index, tag) for index, _, tag in h.tags if tag.role == "burst"]
+    assert len(ends) >= 10
+    assert all(tag.burst is not None and tag.burst[1] == 2 for _, tag in ends)
+    counts = [tag.focus_counts for _, tag in ends]
+    assert all(c in (2000, 8000) for c in counts)
+    assert all(a != b for a, b in itertools.pairwise(counts))  # alternating sides
+    # Between consecutive ends: exactly ``every`` tracking frames at the middle, the rest transit.
+    for (i0, _), (i1, _) in itertools.pairwise(ends):
+        between = [tag for i, _, tag in h.tags if i0 < i < i1]
+        track = [tag for tag in between if tag.role == "track"]
+        assert len(track) == every
+        assert all(tag.focus_counts == 5000 for tag in track)
+    stats = h.sched.stats
+    assert stats.rolling_openings == 1
+    assert stats.bursts_completed == len(ends) - 1
+    span_s = (ends[-1][0] - ends[0][0]) / cfg.fps
+    achieved = (len(ends) - 1) / span_s
+    assert achieved >= 0.9 * depth_rate_limit(cfg, 3000).depth_hz
+
+
+def test_rolling_plan_survives_transit_frames_and_end_uses_the_latest_plan() -> None:
+    # Transit frames bring no plan from the core (it plans from a known focus): the last plan
+    # stays, so the middle frame is claimed at once after the lens settles.
+    h = Harness(replace(ROLL, capture_latency_frames=1), plan=(2000, 5000, 8000))
+    h.run(2.0)
+    h.plan = (2500, 5500, 8500)
+    h.run(2.0)
+    late = [tag.focus_counts for _, mid, tag in h.tags if tag.role == "burst" and mid > 2.8]
+    assert late
+    assert set(late) <= {2500, 8500}
+    assert h.wrong == []
+
+
+def test_daemon_and_bench_build_the_scheduler_config_with_one_function() -> None:
+    from types import SimpleNamespace
+
+    from dffd.config import DffdConfig
+    from dffd.daemon.app import Daemon
+    from dffd.scheduler import config_from_settings
+
+    cfg = DffdConfig.model_validate(
+        {
+            "scheduler": {
+                "burst_mode": "classic",
+                "acquire_stable_frames": 7,
+                "pan_tilt_mode": "absolute",
+                "pan_tilt_feedforward": False,
+                "pan_tilt_lost_s": 1.5,
+                "pan_tilt_search_s": 0.5,
+                "timing_margin_s": 0.002,
+                "burst_policy": "sigma",
+                "sigma_max_interval_frames": 40,
+            }
+        }
+    )
+    lens = SimpleNamespace(focal_length_mm=4.0, pixel_pitch_mm=0.006)
+    source = SimpleNamespace(fps=25.0, frame_size=(320, 240))
+    daemon = Daemon(cfg)._scheduler_config(lens, source, 0.004, 15000.0)  # type: ignore[arg-type]
+    shared = config_from_settings(
+        cfg, fps=25.0, exposure_s=0.004, focus_speed_counts_per_s=15000.0,
+        focal_length_mm=4.0, pixel_pitch_mm=0.006, frame_size=(320, 240),
+    )  # fmt: skip
+    assert daemon == shared
+    assert shared.burst_mode == "classic"
+    assert shared.acquire_stable_frames == 7
+    assert shared.pan_tilt_mode == "absolute"
+    assert not shared.pan_tilt_feedforward
+    assert (shared.pan_tilt_lost_s, shared.pan_tilt_search_s) == (1.5, 0.5)
+    assert shared.timing_margin_s == 0.002
+    assert shared.burst_every_frames == 40

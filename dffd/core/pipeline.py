@@ -7,7 +7,13 @@ Per frame (pure, synchronous, deterministic; no clock but the frames' own ``t``)
 * every frame: the active contour is updated (transit frames: translation only).
 * burst frames: the focus cost (2) is taken along the normals; when the burst is complete (its
   ``burst_size`` slots, or a track frame / another burst id arrives) the parabola is fitted and a
-  :class:`Measurement` is emitted.
+  :class:`Measurement` is emitted (a burst left with fewer than three frames is not emitted: it is
+  counted in :attr:`Pipeline.burst_rejections` with the reason).
+* rolling bursts (the scheduler's ``rolling`` mode, a triangle lo, mid, hi, mid, lo, … of focus
+  settings): the end frames are tagged ``burst`` with slot 2 alone; such a frame closes a burst
+  made of the previous end frame (the other side of the bracket), the last tracking frame between
+  the two (at the middle: tracking frames carry their focus cost too) and itself. The first end of
+  a sequence (or one whose previous end is missing, stale or on the same side) opens a sequence.
 * track frames: the normalised size ``s = r p / F`` (``F`` the image distance, i.e. ``v0`` of the
   frame's focus setting under the thin-lens magnification) gives ``ρ`` and the exact transition
   ``s_k/s_{k+1}``; every estimator predicts; a pending accepted measurement is applied; an
@@ -23,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -59,6 +66,8 @@ class PipelineConfig:
     known_size_m: float | None = None  # enables CF1
     settle_s: float = 5.0  # settling time: steady-state statistics start after it
     burst_size: int = 3  # frames of a complete burst
+    # Rolling bursts: the previous end must be at most this old (s) to close a burst with.
+    rolling_max_span_s: float = 2.0
     # image scale: "pinhole" f/p (DESIGN (3), the reference simulator) or "thin_lens" v0/p
     # (chief ray; lenses whose image size "breathes" with focus)
     magnification: Literal["thin_lens", "pinhole"] = "pinhole"
@@ -188,6 +197,8 @@ class Pipeline:
     _burst: list[_BurstSample]
     _burst_id: int | None
     _burst_frames: int
+    _last_end: _BurstSample | None  # the last rolling end frame (the next burst's slot 0)
+    _last_mid: _BurstSample | None  # the last tracking frame's cost sample
     _diff_rate: float | None  # filtered ρ̂ = ṡ/s at the last tracking frame
 
     def __init__(self, config: PipelineConfig, lens: Lens) -> None:
@@ -208,6 +219,8 @@ class Pipeline:
         self._known_size = config.known_size_m
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
         self._frames_since_search = 0
+        # Bursts not emitted (fewer than three frames), by reason.
+        self.burst_rejections: Counter[str] = Counter()
         self._reset_estimators()
 
     # -- public API -------------------------------------------------------------------------
@@ -292,6 +305,7 @@ class Pipeline:
             self._tracker.reset()
             self._state = "lost"
             self._discard_burst()
+            self._last_end = self._last_mid = None
             return PipelineOutput(self._state, None, measurement, obs)
         if not obs.ok:
             if tag.role == "track":
@@ -304,6 +318,8 @@ class Pipeline:
             return PipelineOutput(self._state, None, measurement, obs)
         if tag.role != "track" or tag.focus_counts is None:
             return PipelineOutput(self._state, None, measurement, obs)
+        # A tracking frame is at the best focus: the middle of a rolling burst.
+        self._last_mid = self._cost_sample(frame, tag.focus_counts, obs)
         estimate, done = self._track_frame(frame, tag, obs)
         return PipelineOutput(self._state, estimate, done or measurement, obs)
 
@@ -343,16 +359,45 @@ class Pipeline:
         # The fit waits for the next tracking frame: its size brackets the burst in time, so
         # each burst frame's depth relative to the mid-time is interpolated, not extrapolated.
         assert tag.focus_counts is not None
-        bid = tag.burst[0] if tag.burst is not None else -1
+        bid, slot = tag.burst if tag.burst is not None else (-1, 0)
+        sample = self._cost_sample(frame, tag.focus_counts, obs)
+        if self._burst_id is None and slot == self.config.burst_size - 1 and slot > 0:
+            self._add_rolling_end(bid, sample)
+            return
         if self._burst_id is None:
             self._burst_id = bid
-        cost = focus_cost(obs.peak_sq, self._tracker.config.trim_fraction)
-        if cost is not None:
-            self._burst.append(
-                _BurstSample(frame.index, frame.t, tag.focus_counts,
-                             self.lens.v_from_counts(tag.focus_counts), cost[0], cost[1])
-            )
+        if sample is not None:
+            self._burst.append(sample)
         self._burst_frames += 1
+
+    def _add_rolling_end(self, bid: int, sample: _BurstSample | None) -> None:
+        """A last slot with none before it: a rolling end; close a burst with the previous end
+        and the tracking frame between them (see the module docstring)."""
+        prev, mid = self._last_end, self._last_mid
+        self._last_end = sample
+        if sample is None:
+            return
+        if (
+            prev is None
+            or mid is None
+            or not prev.t < mid.t < sample.t
+            or sample.t - prev.t > self.config.rolling_max_span_s
+            or (prev.counts - mid.counts) * (sample.counts - mid.counts) >= 0
+        ):
+            logger.debug("rolling burst %d opens a sequence (no previous end to close)", bid)
+            return
+        self._burst = [prev, mid, sample]
+        self._burst_id = bid
+        self._burst_frames = 3
+
+    def _cost_sample(
+        self, frame: Frame, counts: int, obs: BoundaryObservation
+    ) -> _BurstSample | None:
+        cost = focus_cost(obs.peak_sq, self._tracker.config.trim_fraction)
+        if cost is None:
+            return None
+        v = self.lens.v_from_counts(counts)
+        return _BurstSample(frame.index, frame.t, counts, v, cost[0], cost[1])
 
     def _discard_burst(self) -> None:
         self._burst = []
@@ -365,7 +410,12 @@ class Pipeline:
             return None
         samples, bid = self._burst, self._burst_id
         self._discard_burst()
-        if not samples:
+        if len(samples) < 3:
+            # Not a burst (a claimed frame was dropped, the contour failed on a slot, the link
+            # cut it short): nothing to fit and nothing the ``…/measurement`` schema accepts.
+            reason = f"{len(samples)} of 3 frames with a focus cost"
+            self.burst_rejections[reason] += 1
+            logger.debug("burst %d rejected: %s", bid, reason)
             return None
         t_mid = float(np.mean([s.t for s in samples]))
         v = [s.v_mm for s in samples]
@@ -386,8 +436,6 @@ class Pipeline:
                 ]
                 fit = fit_burst(v_comp, g, sg, self.lens, self.config.fit)
                 z_ref = fit.z_m if fit.accepted else None
-        if len(samples) < 3 and fit.accepted:  # pragma: no cover - fit_burst rejects these
-            raise AssertionError("burst with fewer than three samples accepted")
         m = Measurement(
             burst_id=bid,
             t=t_mid,
@@ -416,6 +464,8 @@ class Pipeline:
         self._burst = []
         self._burst_id = None
         self._burst_frames = 0
+        self._last_end = None
+        self._last_mid = None
 
     def _image_distance_mm(self, counts: int) -> float:
         if self.config.magnification == "pinhole":
@@ -511,7 +561,9 @@ class Pipeline:
         t0, s0 = self._prev
         if t_now <= t0:
             return s_now
-        w = min(max((t_b - t0) / (t_now - t0), 0.0), 1.0)
+        # A rolling burst's mid-time can precede the last tracking frame (its middle frame) a
+        # little: ln-extrapolate back by at most one step.
+        w = min(max((t_b - t0) / (t_now - t0), -1.0), 1.0)
         return math.exp((1 - w) * math.log(s0) + w * math.log(s_now))
 
     def _reset_filters_keep_tracking(self) -> None:

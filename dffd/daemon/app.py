@@ -85,8 +85,8 @@ from dffd.scheduler import (
     PanTiltStop,
     Scheduler,
     SchedulerConfig,
+    config_from_settings,
     depth_rate_limit,
-    pixel_offset_to_deg,
 )
 from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.visca.camera import Camera, profile_for
@@ -642,39 +642,16 @@ class Daemon:
     def _scheduler_config(
         self, lens: Lens, source: FrameSource, exposure_s: float | None, focus_speed: float
     ) -> SchedulerConfig:
-        cfg = self.config
-        sc = cfg.scheduler
-        fps = source.fps
-        exposure = None if exposure_s is None else min(exposure_s, 1.0 / fps)
-        sigma_policy = sc.burst_policy == "sigma"
-        deadband = pixel_offset_to_deg(
-            sc.pan_tilt_deadband_px, lens.focal_length_mm, lens.pixel_pitch_mm
-        )
-        return SchedulerConfig(
-            fps=fps,
-            exposure_s=exposure,
-            capture_latency_frames=math.ceil(cfg.capture.latency_frames),
-            timing_margin_s=sc.timing_margin_s,
-            # sigma policy: a burst when σ of ẑ exceeds the threshold, and otherwise only after
-            # sigma_max_interval_frames (so a filter that under-reports σ cannot starve it).
-            burst_every_frames=sc.sigma_max_interval_frames if sigma_policy else (
-                sc.burst_every_n_frames
-            ),
-            sigma_trigger_m=sc.sigma_threshold_m if sigma_policy else None,
+        # The shared builder (the bench's lock-step runs use it too, so the two cannot diverge).
+        return config_from_settings(
+            self.config,
+            fps=source.fps,
+            exposure_s=exposure_s,
             focus_speed_counts_per_s=focus_speed,
-            baudrate=cfg.camera.baudrate,
             focal_length_mm=lens.focal_length_mm,
             pixel_pitch_mm=lens.pixel_pitch_mm,
             frame_size=source.frame_size,
-            pan_tilt_mode=sc.pan_tilt_mode,
-            pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
-            pan_tilt_feedforward=sc.pan_tilt_feedforward,
-            pan_tilt_lost_s=sc.pan_tilt_lost_s,
-            pan_tilt_search_s=sc.pan_tilt_search_s,
-            acquire_stable_frames=sc.acquire_stable_frames,
-            pan_tilt_deadband_deg=deadband,
-            pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
-        )  # fmt: skip
+        )
 
     def _pipeline_config(self) -> PipelineConfig:
         est = self.config.estimators
