@@ -157,7 +157,8 @@ def test_scheduler_config_follows_the_scheduler_section() -> None:
     lens = Lens.from_toml(cfg.lens.file)
     source = SimpleNamespace(fps=30.0, frame_size=(640, 480))
     every = Daemon(cfg)._scheduler_config(lens, source, 0.004, 20000.0)  # type: ignore[arg-type]
-    assert (every.burst_every_frames, every.sigma_trigger_m) == (10, None)
+    assert (every.burst_every_frames, every.sigma_trigger_m) == (2, None)
+    assert every.burst_mode == "rolling"
     assert (every.pan_tilt_mode, every.pan_tilt_feedforward, every.timing_margin_s) == (
         "drive", True, 0.003,
     )  # fmt: skip
