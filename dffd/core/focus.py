@@ -123,14 +123,16 @@ def fit_burst(
     if c_min <= 0:
         return _rejected("cost at the vertex <= 0", alpha, v_hat, chi, sigma_v)
     if sigma_x > cfg.max_rel_sigma_v:
-        return _rejected("ill-conditioned: vertex uncertain across the bracket", alpha, v_hat,
-                         chi, sigma_v)
+        return _rejected(
+            "ill-conditioned: vertex uncertain across the bracket", alpha, v_hat, chi, sigma_v
+        )
     if v_hat <= lens.focal_length_mm:
         return _rejected("vertex at or beyond infinity focus", alpha, v_hat, chi, sigma_v)
     z = lens.depth_from_v(v_hat)
     sigma_z = abs(lens.dz_dv(v_hat)) * sigma_v
-    return BurstFit(alpha, v_hat, chi, accepted=True, reason=reason, z_m=z, sigma_m=sigma_z,
-                    sigma_v_mm=sigma_v)
+    return BurstFit(
+        alpha, v_hat, chi, accepted=True, reason=reason, z_m=z, sigma_m=sigma_z, sigma_v_mm=sigma_v
+    )
 
 
 def plan_burst(
@@ -183,5 +185,13 @@ def _rejected(
     residual: float = math.nan,
     sigma_v: float = math.nan,
 ) -> BurstFit:
-    return BurstFit(alpha, v_hat, residual, accepted=False, reason=reason, z_m=None,
-                    sigma_m=None, sigma_v_mm=sigma_v)
+    return BurstFit(
+        alpha,
+        v_hat,
+        residual,
+        accepted=False,
+        reason=reason,
+        z_m=None,
+        sigma_m=None,
+        sigma_v_mm=sigma_v,
+    )

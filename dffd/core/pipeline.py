@@ -519,8 +519,11 @@ class Pipeline:
             measured_t = pending.t
             y_now = size_m / s
             sigma_now = pending.sigma_m * y_now / pending.z_m
-            kf_sigma = max(sigma_now, cfg.kf_noise.sigma_v_mm * abs(
-                self.lens.dz_dv(self.lens.v_from_depth(max(self._kf.z or y_now, 0.1)))))
+            kf_sigma = max(
+                sigma_now,
+                cfg.kf_noise.sigma_v_mm
+                * abs(self.lens.dz_dv(self.lens.v_from_depth(max(self._kf.z or y_now, 0.1)))),
+            )
             self._n_accepted += 1
             if self._n_accepted <= cfg.cf2_size_bursts and cfg.cf2_nominal_size_m is None:
                 n = self._n_accepted
@@ -652,4 +655,3 @@ class Pipeline:
             focus_counts=tag.focus_counts,
             inlier_fraction=obs.inlier_fraction,
         )
-
