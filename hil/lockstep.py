@@ -313,6 +313,7 @@ class _Runner:
             self._sweep_frame(frame, tag, truth_z)
             return
         res.frames_by_role[tag.role] = res.frames_by_role.get(tag.role, 0) + 1
+        self._pan_tilt_sample(tag, truth)
         if self.recorder is not None:
             self.recorder.add(frame, tag, truth_z)
         c0 = time.thread_time()
@@ -391,6 +392,16 @@ class _Runner:
             z_ar = self._aruco.depth(frame.image)
             if z_ar is not None:
                 res.baseline("aruco").add(frame.t, z_ar, truth_z)
+
+    def _pan_tilt_sample(self, tag: FrameTag, truth: FrameTruth) -> None:
+        # Pan/tilt diagnostics (truth, for the report only): the target's image motion during
+        # the exposure (smear), its centring error, and the head's direction for its reversals.
+        w, h = self.session.frame_size
+        off = math.hypot(truth.centroid_px[0] - (w - 1) / 2.0, truth.centroid_px[1] - (h - 1) / 2.0)
+        self.result.extra.setdefault("pan_tilt_samples", []).append(
+            (truth.t - self.result.t_start, tag.role, math.hypot(*truth.motion_px), off,
+             truth.pan_deg, truth.tilt_deg)
+        )  # fmt: skip
 
     def _remember_truth(self, index: int, z: float) -> None:
         self.truth[index] = z

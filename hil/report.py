@@ -139,6 +139,7 @@ def build_report(
         "cpu": cpu,
         "per_case": _per_case(results),
         "diagnostics": diagnostics(results),
+        "pan_tilt": pan_tilt_diagnostics(results),
         "notes": sorted({n for r in results for n in r.notes}),
     }
     report["goals"] = evaluate_goals(report, thresholds or {})
@@ -186,6 +187,52 @@ def diagnostics(results: Sequence[RunResult]) -> dict[str, Any]:
         if n or any(v is not None for k, v in row.items() if k.endswith("_m")):
             rows[key] = row
     return {"by_true_depth": rows}
+
+
+def pan_tilt_diagnostics(results: Sequence[RunResult]) -> dict[str, Any] | None:
+    """Head behaviour in steady state (lock-step runs; truth from the simulator).
+
+    ``smear_px``: the target's image motion during the exposure on track/burst frames (what
+    blurs the edges the estimator measures), mean and p90; ``burst_smear_px`` the same on burst
+    frames; ``centre_err_px``: distance of the target's centroid from the image centre, RMS and
+    p95; ``reversals_per_s``: sign changes of the head's frame-to-frame pan or tilt velocity
+    (hunting); ``commands_per_s``: pan/tilt commands (not inquiries) per second of the whole run.
+    """
+    smear: list[float] = []
+    burst: list[float] = []
+    centre: list[float] = []
+    reversals = 0
+    span = 0.0
+    commands = 0
+    duration = 0.0
+    for res in results:
+        rows = [r for r in res.extra.get("pan_tilt_samples", []) if r[0] >= res.settle_s]
+        if len(rows) < 3:
+            continue
+        smear += [r[2] for r in rows if r[1] != "transit"]
+        burst += [r[2] for r in rows if r[1] == "burst"]
+        centre += [r[3] for r in rows]
+        t = np.asarray([r[0] for r in rows])
+        for col in (4, 5):
+            v = np.diff(np.asarray([r[col] for r in rows]))
+            s = np.sign(v[np.abs(v) > 1e-9])
+            reversals += int(np.count_nonzero(s[1:] != s[:-1]))
+        span += float(t[-1] - t[0])
+        commands += int(res.extra.get("scheduler", {}).get("pan_tilt_commands", 0))
+        duration += res.duration_s
+    if not smear or span <= 0:
+        return None
+    sm, bu, ce = np.asarray(smear), np.asarray(burst), np.asarray(centre)
+    return {
+        "smear_px_mean": _f(sm.mean()),
+        "smear_px_p90": _f(np.percentile(sm, 90)),
+        "burst_smear_px_mean": _f(bu.mean()) if bu.size else None,
+        "burst_smear_px_p90": _f(np.percentile(bu, 90)) if bu.size else None,
+        "centre_err_px_rms": _f(np.sqrt(np.mean(ce**2))),
+        "centre_err_px_p95": _f(np.percentile(ce, 95)),
+        "reversals_per_s": reversals / span,
+        "commands_per_s": commands / duration if duration > 0 else None,
+    }
 
 
 def evaluate_goals(report: dict[str, Any], thresholds: dict[str, float | None]) -> list[Any]:
@@ -281,6 +328,20 @@ def format_table(report: dict[str, Any]) -> str:
             _num(rates["sweep_rate_ratio"], "{:.1f}×"),
         )
     )
+    if (pt := report.get("pan_tilt")) is not None:
+        lines.append(
+            "pan/tilt (steady state): smear {} px mean, {} p90 (burst frames {} / {}); centre error"
+            " {} px rms, {} p95; {} reversals/s; {} commands/s".format(
+                _num(pt["smear_px_mean"], "{:.2f}"),
+                _num(pt["smear_px_p90"], "{:.2f}"),
+                _num(pt["burst_smear_px_mean"], "{:.2f}"),
+                _num(pt["burst_smear_px_p90"], "{:.2f}"),
+                _num(pt["centre_err_px_rms"], "{:.1f}"),
+                _num(pt["centre_err_px_p95"], "{:.1f}"),
+                _num(pt["reversals_per_s"], "{:.1f}"),
+                _num(pt["commands_per_s"], "{:.1f}"),
+            )
+        )
     cpu = report["cpu"]
     lines.append(
         "core CPU {} ms/frame (p95 {}); {:.0f} s of scenario in {:.1f} s wall".format(
