@@ -218,7 +218,14 @@ class SchedulerConfig(_Section):
     pan_tilt_feedforward: bool = Field(
         default=True, description="add the target's angular velocity to the pan/tilt rate"
     )
-    pan_tilt_deadband_px: Annotated[float, Field(ge=0, le=100)] = 4.0
+    pan_tilt_deadband_px: Annotated[float, Field(ge=0, le=100)] = Field(
+        default=16.0,
+        description="hysteresis band: a correction starts when the projected error exceeds it, px",
+    )
+    pan_tilt_max_correction_deg_s: Annotated[float, Field(gt=0, le=300)] = Field(
+        default=3.0,
+        description="cap on correction speed minus target speed, deg/s (tracker: ±12 px/frame)",
+    )
     pan_tilt_max_command_hz: Annotated[float, Field(gt=0, le=60)] = Field(
         default=10.0, description="cap on pan/tilt commands per second (they share the serial link)"
     )

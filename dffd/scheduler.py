@@ -91,6 +91,7 @@ ACK_BYTES = 3  # z0 4y FF
 COMPLETION_BYTES = 3  # z0 5y FF
 PAN_TILT_DRIVE_BYTES = 9  # 8x 01 06 01 VV WW XX YY FF
 PAN_TILT_ABSOLUTE_BYTES = 15  # 8x 01 06 02 VV WW 0Y×4 0Z×4 FF
+PAN_TILT_POSITION_REPLY_BYTES = 11  # z0 50 0w×4 0z×4 FF
 # Pan/tilt speed table for VISCA speed indices 01…18 (deg/s), EVI-D100 reference model.
 VISCA_SPEEDS_DEG_S: tuple[float, ...] = (
     2.0, 2.4, 3.0, 3.7, 4.7, 6.1, 7.4, 9.1, 11.0, 14.0, 18.0, 22.0,
@@ -115,6 +116,17 @@ RATE_WINDOW = 64
 # Exposure times of recent transit tags: the estimator's feedback arrives a few frames late at
 # most (capture latency + estimator queue), far fewer than this.
 TRANSIT_HISTORY = 32
+
+# Pan/tilt controller. The quiet speed changes only when another code is nearer to ω̂ by this
+# fraction of |ω̂| (at least of half the slowest speed): ω̂ is noisy, and every change of the
+# speed run through measured frames changes their smear.
+QUIET_CODE_HYSTERESIS = 0.15
+# Hysteresis of a correction: it starts when the projected error exceeds the band and runs on
+# while more than this fraction of the band is left.
+CONTINUE_FRACTION = 0.25
+# No position inquiry when a pan/tilt command is due within this time (s): the inquiry holds the
+# pan/tilt socket for about a field plus its 11-byte reply (~28 ms at 9600 baud).
+POLL_CLEARANCE_S = 0.04
 
 PanTiltMode = Literal["drive", "absolute", "off"]
 BurstMode = Literal["rolling", "classic"]
@@ -173,7 +185,21 @@ class SchedulerConfig:
     # Consecutive frames with a contour before the core's burst plans are followed: bursts (long
     # focus travel, transit frames) start only once the contour is stable (0: no such gate).
     acquire_stable_frames: int = 0
-    pan_tilt_deadband_deg: float = 0.3
+    # Hysteresis band (deg): a correction starts when the error projected to the end of the free
+    # window exceeds it, and runs until that error is cancelled.
+    pan_tilt_deadband_deg: float = 0.15
+    # Cap on |correction speed − ω̂| (deg/s) unless the proportional gain asks for more: the core's
+    # tracker predicts image motion at constant velocity and searches ±12 px along its normals
+    # (12 px × 30 fps ≈ 3.3°/s at f = 31 mm, 5 µm pixels).
+    pan_tilt_max_correction_deg_s: float = 3.0
+    # Aim of a correction: the error left when the quiet speed resumes is (q − ω̂)·lead, so the
+    # drift through the measured frames carries it across zero (~half a rolling-bracket cycle).
+    pan_tilt_lead_s: float = 0.2
+    # Correction horizon while no bursts run (acquisition): no measured exposures to keep clear.
+    pan_tilt_horizon_s: float = 0.3
+    # Position resolution of the head (deg): EVI-D100 14.4 counts/°. Inquiry replies are
+    # quantised to it; the model is kept within it rather than snapped.
+    pan_tilt_resolution_deg: float = 1.0 / 14.4
     pan_tilt_min_interval_s: float = 0.1
     pan_tilt_poll_interval_s: float = 0.25
     absolute_speed_index: int = 0x10
@@ -216,6 +242,29 @@ class SchedulerConfig:
     def exposure(self) -> float:
         """Exposure duration used for tagging (s)."""
         return self.exposure_s if self.exposure_s is not None else self.period_s
+
+    @property
+    def pan_tilt_latency_s(self) -> float:
+        """Longest time from writing a Pan-tiltDrive to the motors changing: its bytes, then up
+        to one camera command slot (the camera takes commands at field boundaries), plus the
+        timing margin."""
+        return (
+            link_time_s(PAN_TILT_DRIVE_BYTES, self.baudrate)
+            + self.command_slot_s
+            + self.timing_margin_s
+        )
+
+    @property
+    def pan_tilt_model_delay_s(self) -> float:
+        """Mean time from writing a pan/tilt command to the motors changing (the model's)."""
+        return link_time_s(PAN_TILT_DRIVE_BYTES, self.baudrate) + self.command_slot_s / 2.0
+
+    @property
+    def pan_tilt_emergency_deg(self) -> float:
+        """Error (deg) corrected at once, measured frames or not: half-way to the nearer frame
+        edge."""
+        half = min(self.frame_size) / 4.0
+        return pixel_offset_to_deg(half, self.focal_length_mm, self.pixel_pitch_mm)
 
 
 def config_from_settings(
@@ -264,6 +313,7 @@ def config_from_settings(
         pan_tilt_deadband_deg=pixel_offset_to_deg(
             sc.pan_tilt_deadband_px, focal_length_mm, pixel_pitch_mm
         ),
+        pan_tilt_max_correction_deg_s=sc.pan_tilt_max_correction_deg_s,
         pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
     )  # fmt: skip
 
@@ -468,6 +518,7 @@ class _Move:
     move_id: int
     target: int
     t_issued: float
+    t_done: float = math.inf  # predicted Completion (``focus_move_time_s``); inf: unknown
 
 
 @dataclass(slots=True)
@@ -749,7 +800,7 @@ class Scheduler:
             actions.append(focus_action)
             if isinstance(focus_action, FocusMove):
                 self._pt.focus_command_at(now)
-        pt = self._pt.step(now, self._next_focus_command_time(now))
+        pt = self._pt.step(now, self._next_focus_command_time(now), self._quiet_at(now))
         if pt is not None:
             actions.append(pt)
             if not isinstance(pt, PanTiltInquiry):
@@ -768,6 +819,21 @@ class Scheduler:
         if nxt is not None:
             times.append(nxt)
         return min(times) if times else None
+
+    def _quiet_at(self, now: float) -> float | None:
+        """Start of the next exposure the core measures on (burst/track at a stationary focus):
+        ``now`` or earlier while the focus is stationary, the first exposure after the predicted
+        Completion while a move runs (the focus transit is the pan/tilt's free window), None while
+        no bursts run (acquisition, recovery: no exposure to keep free of head corrections)."""
+        if self._plan is None or self._t_ref is None or self._phase in ("init", "recover"):
+            return None
+        move = self._move
+        if move is None:
+            return now
+        if move.t_done == math.inf:
+            return now  # unknown travel: assume it ends at once (no correction in its shadow)
+        mid = self._first_mid_starting_after(move.t_done + self.config.guard_s)
+        return mid - self.config.exposure / 2.0
 
     # -- internals: focus state machine -----------------------------------------------------
     def _focus_step(self, now: float) -> Action | None:
@@ -967,6 +1033,8 @@ class Scheduler:
 
     def _issue_move(self, target: int, now: float, phase: Phase) -> FocusMove:
         move = _Move(self._next_move_id, int(target), now)
+        if self._counts is not None:
+            move.t_done = now + focus_move_time_s(self.config, int(target) - self._counts)
         self._next_move_id += 1
         self._move = move
         self._phase = phase
@@ -1118,18 +1186,45 @@ class Scheduler:
                 self._fail(burst)
 
 
+@dataclass(frozen=True, slots=True)
+class _Segment:
+    """One commanded motion of the head model: from ``(pan0, tilt0)`` at ``t0`` either at
+    ``rate`` (deg/s, drive) or towards ``goal`` at the absolute-move speed."""
+
+    t0: float
+    pan0: float
+    tilt0: float
+    rate: tuple[float, float] = (0.0, 0.0)
+    goal: tuple[float, float] | None = None
+
+
 class _PanTilt:
-    """Pan/tilt position model (dead reckoning between inquiries) and centring controller."""
+    """Pan/tilt position model (dead reckoning between inquiries) and centring controller.
+
+    Drive mode, per axis, with ω̂ the target's filtered angular velocity and e its angular error:
+
+    * **Quiet code** q: the VISCA speed (0 included) nearest to ω̂, changed only when another code
+      is clearly nearer (hysteresis). It runs through every exposure the core measures on, so the
+      head adds only |speed(q) − ω| × exposure of smear there, the same on the frames of a burst.
+    * **Corrections** run in the *free windows*: while the focus is in transit (those frames are
+      centroid-only) or while no bursts run. The correction needed at the window's end is
+      ``M = e + (ω̂ − q)(τ + lead)`` (τ: time left in the window); when ``|M|`` exceeds the band
+      (hysteresis: once started, a correction runs until M is cancelled) another code c is run
+      for ``T = M / (speed(c) − speed(q))``, then q again before the next measured exposure.
+      ``|speed(c) − ω̂|`` is capped (the tracker predicts the image motion at constant velocity and
+      searches ±12 px) unless the error itself is large (the old proportional gain applies then).
+    * A target far off-centre (half-way to the frame edge) is corrected at once, quiet or not.
+
+    A target slower than the slowest speed (2°/s) is thus followed by drive pulses in the focus
+    transits (duty cycle between 0 and 2°/s), never by a speed held through the measured frames.
+    """
 
     def __init__(self, config: SchedulerConfig) -> None:
         self.config = config
         self.busy = False  # one pan/tilt action outstanding at a time (its own VISCA socket)
         self.poll_due: float = 0.0
-        self._t0 = 0.0
-        self._pan0 = 0.0
-        self._tilt0 = 0.0
-        self._rate = (0.0, 0.0)  # deg/s since _t0 (drive) …
-        self._goal: tuple[float, float] | None = None  # … or an absolute target
+        self._seg = _Segment(0.0, 0.0, 0.0)
+        self._prev_seg: _Segment | None = None  # in force until ``_seg.t0`` (command latency)
         self._last_cmd_t = -math.inf
         self._last_cmd: PanTiltDrive | PanTiltAbsolute | PanTiltStop | None = None
         self._target: tuple[float, float] | None = None  # target direction, pan/tilt frame, deg
@@ -1142,28 +1237,57 @@ class _PanTilt:
         self._eval_due = math.inf
         self._last_focus_cmd = -math.inf
         self._last_step = -math.inf
+        self._quiet_code = [0, 0]  # per axis (pan, tilt): the speed run through measured frames
+        self._correcting = [False, False]  # a correction is running on that axis
 
+    # -- model ---------------------------------------------------------------------------------
     def at(self, t: float) -> tuple[float, float]:
-        dt = max(0.0, t - self._t0)
-        if self._goal is not None:
+        seg = self._seg
+        if t < seg.t0 and self._prev_seg is not None:
+            seg = self._prev_seg  # the last command has not reached the motors yet
+        dt = max(0.0, t - seg.t0)
+        if seg.goal is not None:
             idx = self.config.absolute_speed_index
             speed_p = speed_of_index(idx)
             speed_t = speed_of_index(min(idx, TILT_MAX_SPEED_INDEX))
             return (
-                _approach(self._pan0, self._goal[0], speed_p, dt),
-                _approach(self._tilt0, self._goal[1], speed_t, dt),
+                _approach(seg.pan0, seg.goal[0], speed_p, dt),
+                _approach(seg.tilt0, seg.goal[1], speed_t, dt),
             )
-        return self._pan0 + self._rate[0] * dt, self._tilt0 + self._rate[1] * dt
+        return seg.pan0 + seg.rate[0] * dt, seg.tilt0 + seg.rate[1] * dt
 
     def anchor(self, t: float, pan: float, tilt: float) -> None:
-        self._t0, self._pan0, self._tilt0 = t, pan, tilt
-        if self._goal is not None and (pan, tilt) == self._goal:
-            self._goal = None
+        """Re-anchor the model on a position reply received at ``t``.
+
+        The reply is quantised (``pan_tilt_resolution_deg``) and was sampled a reply's wire time
+        before ``t``: the model is moved only as far as needed to agree with it (snapping to the
+        reading would add ±½ count, 3.7 px at f = 31 mm, of noise to every tag and to ω̂).
+        """
+        cfg = self.config
+        t_s = t - link_time_s(PAN_TILT_POSITION_REPLY_BYTES, cfg.baudrate)
+        model = self.at(t_s)
+        seg = self._seg if t_s >= self._seg.t0 or self._prev_seg is None else self._prev_seg
+        slack = [cfg.pan_tilt_resolution_deg / 2.0 + abs(r) * cfg.command_slot_s for r in seg.rate]
+        pan0 = min(max(model[0], pan - slack[0]), pan + slack[0])
+        tilt0 = min(max(model[1], tilt - slack[1]), tilt + slack[1])
+        goal = seg.goal
+        if goal is not None and (
+            abs(pan - goal[0]) <= slack[0] and abs(tilt - goal[1]) <= slack[1]
+        ):
+            pan0, tilt0, goal = goal[0], goal[1], None
+        self._seg = _Segment(t_s, pan0, tilt0, seg.rate, goal)
+        self._prev_seg = None
         self.busy = False
 
     def focus_command_at(self, t: float) -> None:
         self._last_focus_cmd = t
+        # A focus move opens a free window: look again as soon as the link slot allows.
+        follow = self._target is not None and self.config.pan_tilt_mode == "drive"
+        if follow:
+            due = max(t + self.config.command_slot_s, self._last_cmd_t + self._min_interval())
+            self._eval_due = min(self._eval_due, due)
 
+    # -- target ----------------------------------------------------------------------------
     def on_centroid(
         self, t: float, centroid: tuple[float, float] | None, pan: float, tilt: float
     ) -> None:
@@ -1206,13 +1330,14 @@ class _PanTilt:
         self._target_t = t
         self._stop_pending = False
         self._return_pending = False
-        self._eval_due = min(self._eval_due, self._last_cmd_t + cfg.pan_tilt_min_interval_s)
+        self._eval_due = min(self._eval_due, self._last_cmd_t + self._min_interval())
 
     def release(self) -> None:
         """Stop following: one stop, then nothing until a new centroid (no search)."""
-        if self._target is not None or self._rate != (0.0, 0.0) or self._goal is not None:
+        seg = self._seg
+        if self._target is not None or seg.rate != (0.0, 0.0) or seg.goal is not None:
             self._stop_pending = True
-            self._eval_due = self._last_cmd_t + self.config.pan_tilt_min_interval_s
+            self._eval_due = self._last_cmd_t + self._min_interval()
         self._return_pending = False
         self._forget_target()
 
@@ -1241,15 +1366,19 @@ class _PanTilt:
             return
         self._searching = False
         self._return_pending = True
-        self._eval_due = self._last_cmd_t + cfg.pan_tilt_min_interval_s
+        self._eval_due = self._last_cmd_t + self._min_interval()
 
     def _forget_target(self) -> None:
         self._target = None
         self._velocity = (0.0, 0.0)
         self._velocity_samples = 0
         self._searching = False
+        self._correcting = [False, False]
 
-    def step(self, now: float, next_focus_cmd: float | None) -> Action | None:
+    # -- decisions -----------------------------------------------------------------------------
+    def step(
+        self, now: float, next_focus_cmd: float | None, quiet_at: float | None
+    ) -> Action | None:
         cfg = self.config
         self._last_step = now
         if cfg.pan_tilt_mode == "off" or self.busy:
@@ -1260,16 +1389,16 @@ class _PanTilt:
             return None
         if next_focus_cmd is not None and 0.0 <= next_focus_cmd - now < slot - TIME_EPS_S:
             return None
-        if now >= self._eval_due:
-            cmd = self._decide(now)
+        if now >= self._eval_due - TIME_EPS_S:
+            cmd, due = self._decide(now, quiet_at)
             if cmd is not None:
                 self._apply(cmd, now)
                 self.busy = True
+                self._eval_due = max(due, now + self._min_interval())
                 return cmd
-            # Nothing to change now; while following, look again after one command interval.
-            follow = self._target is not None and cfg.pan_tilt_mode == "drive"
-            self._eval_due = now + cfg.pan_tilt_min_interval_s if follow else math.inf
-        if now >= self.poll_due:
+            self._eval_due = due
+        # An inquiry holds the socket for a field or two: not just before a planned command.
+        if now >= self.poll_due and self._eval_due - now > POLL_CLEARANCE_S:
             self.poll_due = now + cfg.pan_tilt_poll_interval_s
             self.busy = True
             return PanTiltInquiry()
@@ -1279,24 +1408,34 @@ class _PanTilt:
         if self.config.pan_tilt_mode == "off" or self.busy:
             return None
         slot = self.config.command_slot_s
-        t = max(min(self.poll_due, self._eval_due), self._last_focus_cmd + slot, self._last_step)
+        poll = self.poll_due
+        if self._eval_due - max(poll, self._last_step) <= POLL_CLEARANCE_S:
+            poll = self._eval_due  # the inquiry waits behind that command (see ``step``)
+        t = max(min(poll, self._eval_due), self._last_focus_cmd + slot, self._last_step)
         if next_focus_cmd is not None and 0.0 <= next_focus_cmd - t < slot - TIME_EPS_S:
             t = next_focus_cmd + slot  # deferred behind that focus command (see ``step``)
         return None if t == math.inf else t
 
-    def _decide(self, now: float) -> PanTiltDrive | PanTiltAbsolute | PanTiltStop | None:
+    def _min_interval(self) -> float:
+        return self.config.pan_tilt_min_interval_s
+
+    def _decide(
+        self, now: float, quiet_at: float | None
+    ) -> tuple[PanTiltDrive | PanTiltAbsolute | PanTiltStop | None, float]:
+        """The command due now (None: keep what runs) and when to look again."""
         cfg = self.config
+        idle = math.inf
         if self._stop_pending:
-            return PanTiltStop()
+            return PanTiltStop(), idle
         if self._return_pending and self._target is not None:
             # The bounded search found nothing: back to where the target was last seen.
             seen = self._target
             self._return_pending = False
             self._forget_target()
             idx = cfg.absolute_speed_index
-            return PanTiltAbsolute(seen[0], seen[1], idx, min(idx, TILT_MAX_SPEED_INDEX))
+            return PanTiltAbsolute(seen[0], seen[1], idx, min(idx, TILT_MAX_SPEED_INDEX)), idle
         if self._target is None:
-            return None
+            return None, idle
         pan_now, tilt_now = self.at(now)
         ff = self._velocity if cfg.pan_tilt_feedforward else (0.0, 0.0)
         # Extrapolate the target to now (bounded by the search horizon).
@@ -1305,53 +1444,129 @@ class _PanTilt:
         err_t = self._target[1] + ff[1] * ahead - tilt_now
         dead = cfg.pan_tilt_deadband_deg
         if cfg.pan_tilt_mode == "absolute":
-            if abs(err_p) <= dead and abs(err_t) <= dead:
-                return None
-            last = self._last_cmd
-            if isinstance(last, PanTiltAbsolute) and (
-                abs(last.pan_deg - self._target[0]) <= dead
-                and abs(last.tilt_deg - self._target[1]) <= dead
-            ):
-                return None
-            idx = cfg.absolute_speed_index
-            return PanTiltAbsolute(
-                self._target[0] + ff[0] * ahead,
-                self._target[1] + ff[1] * ahead,
-                idx,
-                min(idx, TILT_MAX_SPEED_INDEX),
-            )
-        rate_p = _axis_rate(err_p, ff[0], dead, cfg.pan_tilt_gain_per_s)
-        rate_t = _axis_rate(err_t, ff[1], dead, cfg.pan_tilt_gain_per_s)
-        ip = visca_speed_index(rate_p, PAN_MAX_SPEED_INDEX)
-        it = visca_speed_index(rate_t, TILT_MAX_SPEED_INDEX)
-        if ip == 0 and it == 0:
-            return None if self._rate == (0.0, 0.0) else PanTiltStop()
+            return self._decide_absolute(err_p, err_t, ff, ahead), idle
+        periodic = now + self._min_interval()
+        ip, end_p = self._axis(0, err_p, ff[0], now, quiet_at, dead)
+        it, end_t = self._axis(1, err_t, ff[1], now, quiet_at, dead)
+        due = min(periodic, end_p, end_t)
         last = self._last_cmd
+        rate = self._seg.rate if self._seg.goal is None else None
+        if ip == 0 and it == 0:
+            if rate == (0.0, 0.0) and not isinstance(last, PanTiltAbsolute):
+                return None, due
+            if isinstance(last, PanTiltStop):
+                return None, due
+            return PanTiltStop(), due
         if isinstance(last, PanTiltDrive) and (last.pan_speed, last.tilt_speed) == (ip, it):
+            return None, due
+        return PanTiltDrive(ip, it, speed_of_index(ip), speed_of_index(it)), due
+
+    def _axis(  # noqa: PLR0917 - private, per-axis step of _decide
+        self,
+        axis: int,
+        error: float,
+        omega: float,
+        now: float,
+        quiet_at: float | None,
+        band: float,
+    ) -> tuple[int, float]:
+        """Signed speed index for one axis and when its correction (if any) ends."""
+        cfg = self.config
+        max_idx = PAN_MAX_SPEED_INDEX if axis == 0 else TILT_MAX_SPEED_INDEX
+        q = self._quiet_code[axis]
+        best = nearest_speed_index(omega, max_idx)
+        hysteresis = QUIET_CODE_HYSTERESIS * max(abs(omega), VISCA_SPEEDS_DEG_S[0] / 2.0)
+        if abs(speed_of_index(q) - omega) > abs(speed_of_index(best) - omega) + hysteresis:
+            q = best
+        self._quiet_code[axis] = q
+        sq = speed_of_index(q)
+        emergency = abs(error) > cfg.pan_tilt_emergency_deg
+        if quiet_at is None:
+            tau = cfg.pan_tilt_horizon_s  # no measured exposures ahead: a rolling horizon
+        else:
+            tau = quiet_at - cfg.pan_tilt_latency_s - now
+            if tau < self._min_interval():
+                if not emergency:
+                    self._correcting[axis] = False
+                    return q, math.inf  # no time to correct and be back on q: keep q
+                tau = cfg.pan_tilt_horizon_s
+        # Error left at the window's end if q ran from now; aim at (q − ω̂)·lead there, so the
+        # drift through the measured frames carries it across zero.
+        m = error + (omega - sq) * (tau + cfg.pan_tilt_lead_s)
+        threshold = band if not self._correcting[axis] else CONTINUE_FRACTION * band
+        if abs(m) <= threshold:
+            self._correcting[axis] = False
+            return q, math.inf
+        cap = max(cfg.pan_tilt_max_correction_deg_s, cfg.pan_tilt_gain_per_s * abs(error))
+        u = min(max(m / tau, -cap), cap)
+        c = nearest_speed_index(sq + u, max_idx)
+        direction = 1 if m > 0 else -1
+        if (speed_of_index(c) - sq) * direction <= 0:
+            c = _step_index(q, direction, max_idx)  # at least one code towards the error
+        relative = speed_of_index(c) - sq
+        if relative == 0.0:
+            self._correcting[axis] = False
+            return q, math.inf  # at the end of the table: nothing faster to run
+        duration = min(m / relative, tau)
+        if duration < self._min_interval():
+            if abs(m) < 0.5 * abs(relative) * self._min_interval():
+                self._correcting[axis] = False
+                return q, math.inf  # the shortest pulse would overshoot more than it corrects
+            duration = self._min_interval()
+        self._correcting[axis] = True
+        return c, now + duration
+
+    def _decide_absolute(
+        self, err_p: float, err_t: float, ff: tuple[float, float], ahead: float
+    ) -> PanTiltAbsolute | None:
+        cfg = self.config
+        assert self._target is not None
+        dead = cfg.pan_tilt_deadband_deg
+        if abs(err_p) <= dead and abs(err_t) <= dead:
             return None
-        return PanTiltDrive(ip, it, speed_of_index(ip), speed_of_index(it))
+        last = self._last_cmd
+        if isinstance(last, PanTiltAbsolute) and (
+            abs(last.pan_deg - self._target[0]) <= dead
+            and abs(last.tilt_deg - self._target[1]) <= dead
+        ):
+            return None
+        idx = cfg.absolute_speed_index
+        return PanTiltAbsolute(
+            self._target[0] + ff[0] * ahead,
+            self._target[1] + ff[1] * ahead,
+            idx,
+            min(idx, TILT_MAX_SPEED_INDEX),
+        )
 
     def _apply(self, cmd: PanTiltDrive | PanTiltAbsolute | PanTiltStop, now: float) -> None:
-        pan, tilt = self.at(now)
-        self._t0, self._pan0, self._tilt0 = now, pan, tilt
-        self._rate = (0.0, 0.0)
-        self._goal = None
+        # The motors change when the camera takes the command: after its bytes and, on average,
+        # half a video field (the camera works on field boundaries).
+        t_eff = now + self.config.pan_tilt_model_delay_s
+        pan, tilt = self.at(t_eff)
+        self._prev_seg = self._seg
         if isinstance(cmd, PanTiltDrive):
-            self._rate = (cmd.pan_rate_deg_s, cmd.tilt_rate_deg_s)
+            self._seg = _Segment(t_eff, pan, tilt, rate=(cmd.pan_rate_deg_s, cmd.tilt_rate_deg_s))
         elif isinstance(cmd, PanTiltAbsolute):
-            self._goal = (cmd.pan_deg, cmd.tilt_deg)
+            self._seg = _Segment(t_eff, pan, tilt, goal=(cmd.pan_deg, cmd.tilt_deg))
         else:
+            self._seg = _Segment(t_eff, pan, tilt)
             self._stop_pending = False
         self._last_cmd = cmd
         self._last_cmd_t = now
-        self._eval_due = now + self.config.pan_tilt_min_interval_s
 
 
-def _axis_rate(error: float, feedforward: float, deadband: float, gain: float) -> float:
-    """Feed-forward plus proportional rate; zero inside the deadband for a slow target."""
-    if abs(error) <= deadband and abs(feedforward) < VISCA_SPEEDS_DEG_S[0] / 2.0:
-        return 0.0
-    return feedforward + (gain * error if abs(error) > deadband else 0.0)
+def nearest_speed_index(rate_deg_s: float, max_index: int) -> int:
+    """Signed VISCA speed index nearest to ``rate_deg_s``, 0 (stopped) included: rates below half
+    the slowest speed map to 0, others as :func:`visca_speed_index`."""
+    if abs(rate_deg_s) < VISCA_SPEEDS_DEG_S[0] / 2.0:
+        return 0
+    return visca_speed_index(rate_deg_s, max_index)
+
+
+def _step_index(index: int, direction: int, max_index: int) -> int:
+    """The signed speed index one code from ``index`` in ``direction`` (through 0)."""
+    stepped = index + direction
+    return max(-max_index, min(max_index, stepped))
 
 
 def _approach(start: float, goal: float, speed: float, dt: float) -> float:

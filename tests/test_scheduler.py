@@ -30,6 +30,7 @@ from dffd.scheduler import (
     depth_rate_limit,
     focus_move_time_s,
     link_time_s,
+    nearest_speed_index,
     order_settings,
     pixel_offset_to_deg,
     speed_of_index,
@@ -519,7 +520,9 @@ def test_centred_target_gives_no_motion_and_lost_target_is_searched_for() -> Non
     t_ret, ret = returns[0]
     assert t_ret - lost_at >= cfg.pan_tilt_lost_s + cfg.pan_tilt_search_s - 0.1
     expected = pixel_offset_to_deg(600.0 - 319.5, cfg.focal_length_mm, cfg.pixel_pitch_mm)
-    assert ret.pan_deg == pytest.approx(expected, abs=0.5)  # the harness re-anchors pan at 0
+    # The harness answers pan 0 to every inquiry while the head drives: the model stays within
+    # a count plus one field of motion of such a reading (it is not snapped to it).
+    assert ret.pan_deg == pytest.approx(expected, abs=1.0)
     assert cmds[-1][1] is ret  # then it holds there
     assert h2.sched.searching is False
 
@@ -642,7 +645,10 @@ def test_pan_tilt_model_dead_reckons_between_inquiries() -> None:
     [drive] = [a for a in s.next_actions(0.3) if isinstance(a, PanTiltDrive)]
     s.on_pan_tilt_done(0.32)
     pan, tilt = s.pan_tilt_at(1.3)
-    assert pan == pytest.approx(drive.pan_rate_deg_s * 1.0)
+    # The motors change when the camera takes the command: its bytes plus half a field on average.
+    delay = s.config.pan_tilt_model_delay_s
+    assert pan == pytest.approx(drive.pan_rate_deg_s * (1.0 - delay))
+    assert s.pan_tilt_at(0.3 + delay / 2.0) == (0.0, 0.0)  # not yet moving
     assert tilt == 0.0
     # A frame is tagged with the modelled pan at its exposure.
     tag = s.on_frame(0, 1.3)
@@ -796,3 +802,121 @@ def test_daemon_and_bench_build_the_scheduler_config_with_one_function() -> None
     assert (shared.pan_tilt_lost_s, shared.pan_tilt_search_s) == (1.5, 0.5)
     assert shared.timing_margin_s == 0.002
     assert shared.burst_every_frames == 40
+
+
+# -- closed loop: a modelled head and a target at a constant angular velocity ------------------
+FIELD_S = 1.0 / 60.0
+TELE = replace(
+    PT,
+    focal_length_mm=31.0,
+    pixel_pitch_mm=0.005,
+    exposure_s=0.004,
+    burst_mode="rolling",
+    burst_every_frames=2,
+    pan_tilt_deadband_deg=pixel_offset_to_deg(16.0, 31.0, 0.005),
+)
+WIDE_PLAN = (2000, 5000, 8000)  # half-bracket moves of ~0.15 s: the focus transits
+
+
+@dataclass
+class HeadHarness(Harness):
+    """The harness with a pan axis that obeys Pan-tiltDrive at field boundaries (after the
+    command's bytes) and a target moving at ``omega`` deg/s from ``start_deg``."""
+
+    omega: float = 0.0
+    start_deg: float = 0.0
+    segments: list[tuple[float, float, float]] = field(default_factory=list)  # t0, pan0, rate
+
+    def head(self, t: float) -> tuple[float, float]:
+        """Pan (deg) and its rate at ``t``."""
+        pan, rate, t_prev = 0.0, 0.0, 0.0
+        for t0, pan0, r in self.segments:
+            if t0 > t:
+                break
+            pan, rate, t_prev = pan0, r, t0
+        return pan + rate * (t - t_prev), rate
+
+    def execute(self, now: float, action: object) -> None:
+        if isinstance(action, PanTiltDrive | PanTiltStop):
+            rate = action.pan_rate_deg_s if isinstance(action, PanTiltDrive) else 0.0
+            arrive = now + link_time_s(9, self.config.baudrate)
+            t_eff = math.ceil(arrive / FIELD_S) * FIELD_S
+            self.segments.append((t_eff, self.head(t_eff)[0], rate))
+            self.push(t_eff + link_time_s(6, self.config.baudrate), "pt_done")
+            return
+        if isinstance(action, PanTiltInquiry):
+            t_s = math.ceil(now / FIELD_S) * FIELD_S
+            counts = round(self.head(t_s)[0] * 14.4)  # the head's resolution (EVI-D100)
+            self.push(t_s + link_time_s(11, self.config.baudrate), "pt_pos", counts / 14.4)
+            return
+        super().execute(now, action)
+
+    def handle(self, kind: str, data: object) -> None:
+        if kind == "frame":
+            assert isinstance(data, tuple)
+            _, mid = data
+            off = self.start_deg + self.omega * mid - self.head(mid)[0]
+            px = math.tan(math.radians(off)) * self.config.focal_length_mm
+            self.centroid = (319.5 + px / self.config.pixel_pitch_mm, 239.5)
+        if kind == "pt_pos":
+            assert isinstance(data, float)
+            self.sched.on_pan_tilt_position(self.now, data, 0.0)
+            return
+        super().handle(kind, data)
+
+    def measured_rates(self, after: float) -> list[float]:
+        """Head pan rate at the start and end of every track/burst exposure after ``after``."""
+        out = []
+        for _, mid, tag in self.tags:
+            if tag.role != "transit" and mid > after:
+                out += [self.head(mid - self.half)[1], self.head(mid + self.half)[1]]
+        return out
+
+    def error_px(self, t: float) -> float:
+        off = self.start_deg + self.omega * t - self.head(t)[0]
+        return (
+            math.tan(math.radians(off)) * self.config.focal_length_mm / self.config.pixel_pitch_mm
+        )
+
+
+@pytest.mark.parametrize("omega", [0.0, 0.6, -1.3, 2.7])
+def test_head_follows_without_hunting_and_holds_speed_through_measured_frames(
+    omega: float,
+) -> None:
+    h = HeadHarness(TELE, plan=WIDE_PLAN, omega=omega, start_deg=0.3)
+    h.run(8.0)
+    assert h.wrong == []
+    assert h.sched.stats.bursts_completed >= 10  # corrections do not cost the focus its bursts
+    # Measured exposures all see one speed, the table speed nearest the target's (0 below 1°/s):
+    # no head-induced smear beyond |that speed − ω| × exposure, the same on every burst frame.
+    quiet = set(h.measured_rates(after=2.0))
+    nearest = speed_of_index(nearest_speed_index(omega, 0x18))
+    assert quiet == {nearest}
+    # Centred within the band plus the drift of one rolling cycle, and no hunting: the head
+    # never turns against the target.
+    errors = [abs(h.error_px(2.0 + k * 0.01)) for k in range(600)]
+    assert max(errors) <= 40.0
+    rates = [r for t0, _, r in h.segments if t0 > 2.0]
+    assert all(r * omega >= 0.0 for r in rates)
+    # Rate limit and link budget held.
+    times = [t for t, _ in _pan_tilt_commands(h)]
+    assert all(b - a >= TELE.pan_tilt_min_interval_s - 1e-9 for a, b in itertools.pairwise(times))
+    focus_times = [t for t, a in h.actions if isinstance(a, FocusMove)]
+    assert all(
+        not (0 <= pt - ft < TELE.command_slot_s - 1e-6) for pt in times for ft in focus_times
+    )
+
+
+def test_static_target_inside_the_band_gets_no_command() -> None:
+    h = HeadHarness(TELE, plan=WIDE_PLAN, start_deg=pixel_offset_to_deg(10.0, 31.0, 0.005))
+    h.run(3.0)
+    assert _pan_tilt_commands(h) == []
+    # Outside the band: pulses towards the target within the tracker's speed cap, then at rest.
+    h2 = HeadHarness(TELE, plan=WIDE_PLAN, start_deg=pixel_offset_to_deg(60.0, 31.0, 0.005))
+    h2.run(4.0)
+    cmds = _pan_tilt_commands(h2)
+    assert 2 <= len(cmds) <= 6
+    drives = [a for _, a in cmds if isinstance(a, PanTiltDrive)]
+    assert all(0.0 < a.pan_rate_deg_s <= TELE.pan_tilt_max_correction_deg_s for a in drives)
+    assert abs(h2.error_px(4.0)) <= 16.0
+    assert h2.head(4.0)[1] == 0.0
