@@ -54,12 +54,18 @@ fits over the real counts in the tag). Between bursts the lens is re-focused onl
 centre has moved by more than ``retarget_steps`` bracket steps: chasing estimate noise with focus
 moves would cost transit frames and restart the tracking count.
 
-Pan/tilt: a proportional controller on the centroid's angular error (pixels → angle through the
-focal length and pixel pitch), corrected for the camera's own motion since the exposure, plus
-velocity feed-forward (the target's angular velocity from its first two centroids on, then
-filtered), issuing Pan-tiltDrive speeds (or absolute moves) at most every
-``pan_tilt_min_interval_s``, never within one camera command slot of a focus command (the link
-is budgeted for focus first).
+Pan/tilt (drive mode; see :class:`_PanTilt`): the VISCA speed table is coarse (2.0°/s is the
+slowest: 0.2° = 22 px at f = 31 mm in one 0.1 s command interval), so a proportional controller
+on it hunts around a slow target and smears the measured exposures. Instead each axis runs a
+*quiet* speed code — the one nearest the target's filtered angular velocity (feed-forward from its
+first two centroids on), 0 included, with hysteresis — through every exposure the core measures
+on, and corrects its position with drive pulses in the *free windows* while the focus is in
+transit (those frames are centroid-only): a correction starts when the error projected to the
+window's end exceeds the band (``pan_tilt_deadband_deg``) and ends on time to be back on the quiet
+code before the next measured exposure. Commands are issued at most every
+``pan_tilt_min_interval_s`` and never within one camera command slot of a focus command (the link
+is budgeted for focus first). The head model dead-reckons the commanded speeds from when the
+camera takes them (bytes + half a field) and keeps within the quantisation of position replies.
 
 Acquisition and loss. The core's burst plans are ignored until the contour has been seen on
 ``acquire_stable_frames`` consecutive frames (acquire first, then bursts). Frames without a

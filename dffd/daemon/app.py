@@ -89,7 +89,7 @@ from dffd.scheduler import (
     depth_rate_limit,
 )
 from drivers.frames import Frame, FrameSource, FrameSourceError
-from drivers.visca.camera import Camera, profile_for
+from drivers.visca.camera import Camera, SpeedCode, profile_for
 from drivers.visca.errors import ViscaError
 from drivers.visca.link import ViscaLink
 
@@ -806,7 +806,13 @@ class Daemon:
                 if isinstance(action, PanTiltDrive):
                     await camera.pan_tilt_drive(action.pan_rate_deg_s, action.tilt_rate_deg_s)
                 elif isinstance(action, PanTiltAbsolute):
-                    await camera.pan_tilt_absolute(action.pan_deg, action.tilt_deg)
+                    # At the scheduler's speed codes: its head model moves at those speeds.
+                    await camera.pan_tilt_absolute(
+                        action.pan_deg,
+                        action.tilt_deg,
+                        SpeedCode(action.pan_speed),
+                        SpeedCode(action.tilt_speed),
+                    )
                 elif isinstance(action, PanTiltStop):
                     await camera.pan_tilt_stop()
                 elif isinstance(action, PanTiltInquiry):
