@@ -27,8 +27,14 @@ def circle(t: float) -> tuple[float, float, float]:
 def paper_run() -> dict[str, np.ndarray]:
     # this synthetic circle turns in 20 s (~1 m/s) and settles in 5 s: the observer poles it
     # was tuned with (the default 0.15 rad/s is for the slower reference-simulator circle); its
-    # closed loop has no focus travel, a burst follows the plan at once: no plan lead
-    pipe = Pipeline(PipelineConfig(known_size_m=R, lpv_omega=0.6, plan_lead_s=0.0), LENS)
+    # closed loop has no focus travel, a burst follows the plan at once: no plan lead and no
+    # measurement time offset (the reference simulator's bracket lean, docs/estimation.md §7)
+    pipe = Pipeline(
+        PipelineConfig(
+            known_size_m=R, lpv_omega=0.6, plan_lead_s=0.0, measurement_time_offset_s=0.0
+        ),
+        LENS,
+    )
     est: dict[str, list[tuple[float, float]]] = {k: [] for k in ("cf1", "cf2", "lpv", "kf")}
     meas: list[tuple[float, float]] = []
     sizes: list[float] = []
