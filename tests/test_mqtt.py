@@ -405,6 +405,9 @@ async def test_commands_get_replies_and_bad_ones_change_nothing(mosquitto: Mosqu
             assert not not_json["ok"]
             assert "not JSON" in not_json["error"]
             assert not_json["id"] is None
+            too_deep = await ask(b"[" * 100_000)
+            assert not too_deep["ok"]
+            assert "not JSON" in too_deep["error"]
             not_object = await ask(b"[1, 2]")
             assert not not_object["ok"]
             assert "JSON object" in not_object["error"]
@@ -436,7 +439,7 @@ async def test_commands_get_replies_and_bad_ones_change_nothing(mosquitto: Mosqu
             assert again["ok"]
     assert [c.cmd for c in executed] == ["acquire", "release"]
     stats = publisher.stats()
-    assert (stats.commands, stats.commands_failed) == (12, 9)
+    assert (stats.commands, stats.commands_failed) == (13, 10)
 
 
 # -- authentication and TLS --------------------------------------------------------------------

@@ -532,7 +532,9 @@ class Publisher:
 
         try:
             data = json.loads(payload if isinstance(payload, bytes | bytearray | str) else b"")
-        except (ValueError, UnicodeDecodeError) as exc:
+        except (ValueError, RecursionError) as exc:
+            # RecursionError: nesting deeper than the interpreter's limit (e.g. b"[" * 10**5);
+            # uncaught, it would end the command loop and with it the MQTT client.
             return reply(
                 ok=False,
                 error=f"payload is not JSON ({exc}); send an object such as "
