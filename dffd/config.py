@@ -390,6 +390,15 @@ class MqttConfig(_Section):
                     )
                 ]
             ) from exc
+        except UnicodeDecodeError as exc:
+            raise ConfigError(
+                [
+                    (
+                        f"mqtt.password_file: {self.password_file} is not UTF-8 text ({exc}); "
+                        "write the password as one line of text"
+                    )
+                ]
+            ) from exc
         lines = text.splitlines()
         return lines[0].strip() if lines else ""
 
@@ -614,6 +623,11 @@ def _read_toml(path: Path) -> dict[str, Any]:
     except OSError as exc:
         raise ConfigError(
             [f"cannot read {path}: {exc.strerror}; check the path (see config/dffd.toml)"],
+            str(path),
+        ) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            [f"not valid TOML: {exc} (a TOML file must be UTF-8 text; re-save it as UTF-8)"],
             str(path),
         ) from None
     try:

@@ -168,7 +168,7 @@ class RecordingReader:
             meta = json.loads(meta_path.read_text("utf-8"))
         except FileNotFoundError as exc:
             raise RecordingError(f"{meta_path} not found: is {self.path} a recording?") from exc
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, ValueError) as exc:  # ValueError: not JSON, or not UTF-8
             raise RecordingError(f"cannot read {meta_path}: {exc}") from exc
         if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
             raise RecordingError(f'{meta_path}: expected an object with "schema": {SCHEMA}')

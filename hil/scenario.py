@@ -178,8 +178,10 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         raise ScenarioError(
             f"no scenario {name_or_path!r} (looked for {path}); known scenarios: {known}"
         ) from exc
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"scenario file {path} is not valid TOML: {exc}") from exc
+    except OSError as exc:
+        raise ScenarioError(f"cannot read scenario file {path}: {exc.strerror}") from exc
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:

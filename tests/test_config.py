@@ -250,6 +250,10 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
         load_config(tmp_path / "missing.toml")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(write(tmp_path, "[camera\nname = 1\n"))
+    latin1 = tmp_path / "latin1.toml"
+    latin1.write_bytes('[camera]\nname = "caméra"\n'.encode("latin-1"))
+    with pytest.raises(ConfigError, match="must be UTF-8"):
+        load_config(latin1)
 
 
 def test_missing_files_and_password(tmp_path: Path) -> None:
@@ -262,6 +266,9 @@ def test_missing_files_and_password(tmp_path: Path) -> None:
     assert missing_files(config) == [
         f"lens.file: {tmp_path / 'no.toml'} does not exist; create it or fix the path"
     ]
+    secret.write_bytes(b"\xffpw\n")
+    with pytest.raises(ConfigError, match=r"mqtt\.password_file: .* is not UTF-8"):
+        config.mqtt.read_password()
     secret.unlink()
     with pytest.raises(ConfigError, match=r"mqtt\.password_file: cannot read"):
         config.mqtt.read_password()

@@ -61,6 +61,9 @@ def test_missing_file_and_bad_toml(tmp_path: Path) -> None:
     bad.write_text("[lens\n")
     with pytest.raises(LensError, match="not valid TOML"):
         Lens.from_toml(bad)
+    bad.write_bytes(b"\xff\xfe[lens]\n")
+    with pytest.raises(LensError, match="not valid TOML"):
+        Lens.from_toml(bad)
     empty = tmp_path / "empty.toml"
     empty.write_text("x = 1\n")
     with pytest.raises(LensError, match=r"\[lens\]"):

@@ -81,6 +81,9 @@ def test_errors_name_the_file(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match="already holds a recording"):
         RecordingWriter(tmp_path / "run", 30, (64, 48), {})
     meta = tmp_path / "run" / "meta.json"
+    meta.write_bytes(b"\xff\xfe{}")
+    with pytest.raises(RecordingError, match=r"cannot read .*meta\.json"):
+        RecordingReader(tmp_path / "run")
     meta.write_text(json.dumps({"schema": 2}))
     with pytest.raises(RecordingError, match="schema"):
         RecordingReader(tmp_path / "run")

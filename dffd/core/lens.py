@@ -58,7 +58,7 @@ class Lens:
             data = tomllib.loads(path.read_text(encoding="utf-8"))
         except OSError as exc:
             raise LensError(f"cannot read lens file {path}: {exc}; check the path") from exc
-        except tomllib.TOMLDecodeError as exc:
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise LensError(f"lens file {path} is not valid TOML: {exc}") from exc
         block = data.get("lens")
         if not isinstance(block, dict):

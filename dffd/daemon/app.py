@@ -1167,7 +1167,7 @@ def _scenario_world(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
             f"sim.scenario: cannot read {path}: {exc.strerror}; give a scenario name "
             "(static, approach, paper-circle, figure-eight, random) or a TOML file path"
         ) from exc
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise DaemonError(f"sim.scenario: {path} is not valid TOML: {exc}") from exc
     target = data.get("target", {})
     trajectory = data.get("trajectory")

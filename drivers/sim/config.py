@@ -156,7 +156,7 @@ def load_sim_camera_config(path: str | Path) -> SimCameraConfig:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise SimConfigError(f"cannot read simulated-camera config {path}: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SimConfigError(f"{path} is not valid TOML: {exc}") from exc
     try:
         return SimCameraConfig.model_validate(data)
