@@ -74,6 +74,42 @@ def test_estimator_queue_drops_oldest_and_never_blocks_capture() -> None:
     assert est.dropped == 6
 
 
+class _FailingPipeline(_BlockingPipeline):
+    """The core raising on frame 1 (a bad frame) and on a bad command."""
+
+    def process(self, frame: Frame, tag: FrameTag) -> PipelineOutput:
+        if frame.index == 1:
+            raise ValueError("garbled frame")
+        self.seen.append(frame.index)
+        return PipelineOutput("acquiring", None, None, None)
+
+    def set_known_size(self, size: float | None) -> None:
+        raise ValueError(f"size {size} rejected")
+
+
+def test_a_frame_or_command_that_raises_does_not_stop_the_estimator() -> None:
+    pipeline = _FailingPipeline()
+    delivered: list[int] = []
+    done = threading.Event()
+
+    def deliver(result: EstimatorResult) -> None:
+        delivered.append(result.frame_index)
+        if result.frame_index == 2:
+            done.set()
+
+    est = EstimatorThread(pipeline, deliver)  # type: ignore[arg-type]
+    est.start()
+    tag = FrameTag("track", 5000, 0.0, 0.0)
+    future = est.call(lambda p: p.set_known_size(-1.0) or None)  # type: ignore[attr-defined]
+    for i in range(3):
+        est.submit(_frame(i), tag)
+    assert done.wait(RESULT_TIMEOUT_S)
+    assert isinstance(future.exception(RESULT_TIMEOUT_S), ValueError)
+    assert est.stop()
+    assert delivered == [0, 2]
+    assert pipeline.seen == [0, 2]
+
+
 def test_rate_meter() -> None:
     meter = RateMeter(window_s=2.0)
     for k in range(61):
