@@ -45,6 +45,9 @@ def test_round_trips_and_thin_lens() -> None:
         ({"focus_table": [[4096, 31.1], [5000, 31.3], [6000, 31.2]]}, "monotone"),
         ({"focus_table": [[4096, 30.0], [5000, 31.3]]}, "focal_length_mm"),
         ({"focus_table": "nope"}, "focus_table"),
+        ({"focus_table": [[4096, 31.1], [float("nan"), 31.3]]}, r"focus_table\[1\] counts"),
+        ({"focus_table": [[4096, 31.1], [4500.5, 31.3]]}, r"focus_table\[1\] counts"),
+        ({"zoom_counts": "tele"}, "zoom_counts"),
     ],
 )
 def test_validation_names_the_field(change: dict[str, object], field: str) -> None:
@@ -52,6 +55,11 @@ def test_validation_names_the_field(change: dict[str, object], field: str) -> No
     meta.update(change)
     with pytest.raises(LensError, match=field):
         Lens.from_meta(meta)
+
+
+def test_lens_block_that_is_not_a_table_is_an_error() -> None:
+    with pytest.raises(LensError, match="expected a table"):
+        Lens.from_meta([1, 2])  # type: ignore[arg-type]
 
 
 def test_missing_file_and_bad_toml(tmp_path: Path) -> None:

@@ -68,6 +68,11 @@ class Lens:
     @classmethod
     def from_meta(cls, meta: Mapping[str, Any], source: str = "lens block") -> Lens:
         """Build from a mapping with ``focal_length_mm``, ``pixel_pitch_mm``, ``focus_table``."""
+        if not isinstance(meta, Mapping):
+            raise LensError(
+                f"{source}: expected a table with focal_length_mm, pixel_pitch_mm and "
+                f"focus_table (got {type(meta).__name__})"
+            )
         table = meta.get("focus_table")
         if not isinstance(table, Sequence) or isinstance(table, str) or len(table) < 2:
             raise LensError(
@@ -79,9 +84,7 @@ class Lens:
             if not isinstance(row, Sequence) or isinstance(row, str) or len(row) != 2:
                 raise LensError(f"{source}: focus_table[{i}] must be a [counts, v_mm] pair")
             c, v = row
-            if not isinstance(c, int | float) or float(c) != int(c):
-                raise LensError(f"{source}: focus_table[{i}] counts {c!r} must be an integer")
-            counts.append(int(c))
+            counts.append(_integer(c, f"focus_table[{i}] counts", source))
             vs.append(_number(v, f"focus_table[{i}] v_mm", source))
         f_number = meta.get("f_number")
         zoom = meta.get("zoom_counts")
@@ -92,7 +95,7 @@ class Lens:
             focus_counts=tuple(counts),
             focus_v_mm=tuple(vs),
             f_number=None if f_number is None else _number(f_number, "f_number", source),
-            zoom_counts=None if zoom is None else int(zoom),
+            zoom_counts=None if zoom is None else _integer(zoom, "zoom_counts", source),
         )
 
     def to_meta(self) -> dict[str, Any]:
@@ -187,6 +190,13 @@ def _number(value: object, name: str, source: str) -> float:
     if not math.isfinite(out):
         raise LensError(f"{source}: {name} must be finite (got {value!r})")
     return out
+
+
+def _integer(value: object, name: str, source: str) -> int:
+    number = _number(value, name, source)
+    if number != int(number):
+        raise LensError(f"{source}: {name} must be an integer (got {value!r})")
+    return int(number)
 
 
 def _validate(lens: Lens) -> None:
