@@ -6,6 +6,7 @@ import threading
 from typing import Any
 
 import numpy as np
+import pytest
 from rich.console import Console as RichConsole
 
 from dffd.core.pipeline import PipelineOutput
@@ -204,3 +205,26 @@ def test_scheduler_config_follows_the_scheduler_section() -> None:
     sigma = Daemon(cfg)._scheduler_config(lens, source, 0.004, 20000.0)  # type: ignore[arg-type]
     assert (sigma.burst_every_frames, sigma.sigma_trigger_m) == (90, 0.05)
     assert sigma.pan_tilt_mode == "absolute"
+
+
+async def test_a_core_command_the_busy_estimator_cannot_apply_is_rejected_with_advice(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from dffd.config import load_config
+    from dffd.daemon import app
+    from dffd.mqtt.publisher import CommandRejected
+
+    monkeypatch.setattr(app, "CORE_COMMAND_TIMEOUT_S", 0.05)  # shrunk, not slept on
+    pipeline = _BlockingPipeline()
+    est = EstimatorThread(pipeline, lambda _r: None)  # type: ignore[arg-type]
+    est.start()
+    try:
+        est.submit(_frame(0), FrameTag("track", 5000, 0.0, 0.0))
+        assert pipeline.entered.wait(RESULT_TIMEOUT_S)  # the core is busy on frame 0
+        daemon = app.Daemon(load_config(None))
+        daemon._parts.estimator = est
+        with pytest.raises(CommandRejected, match=r"did not apply the command.*retry"):
+            await daemon._core(lambda p: p.release())
+    finally:
+        pipeline.release.set()
+        assert est.stop()

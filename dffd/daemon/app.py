@@ -954,6 +954,11 @@ class Daemon:
                 await asyncio.wrap_future(future)
         except ValueError as exc:
             raise CommandRejected(str(exc)) from exc
+        except TimeoutError as exc:
+            raise CommandRejected(
+                f"the estimator did not apply the command within {CORE_COMMAND_TIMEOUT_S:.0f} s "
+                "(it is behind on frames); retry"
+            ) from exc
 
     # -- payloads --------------------------------------------------------------------------------
     def _estimate_payload(self, est: CoreEstimate) -> models.Estimate:
