@@ -228,3 +228,37 @@ async def test_a_core_command_the_busy_estimator_cannot_apply_is_rejected_with_a
     finally:
         pipeline.release.set()
         assert est.stop()
+
+
+class _OverdueScheduler:
+    """A scheduler whose wake-up time is always in the past and which never acts."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def next_actions(self, now: float) -> list[object]:
+        self.calls += 1
+        return []
+
+    def next_wakeup(self) -> float:
+        return 0.0
+
+
+async def test_scheduler_loop_yields_to_the_event_loop_when_a_wakeup_is_overdue() -> None:
+    import asyncio
+
+    from dffd.config import load_config
+    from dffd.daemon.app import Daemon
+
+    daemon = Daemon(load_config(None))
+    sched = _OverdueScheduler()
+    daemon.scheduler = sched  # type: ignore[assignment]
+    task = asyncio.create_task(daemon._scheduler_loop())
+    try:
+        for _ in range(3):  # would never return here if the loop did not yield
+            await asyncio.sleep(0)
+        assert sched.calls >= 2
+        assert not task.done()  # still running, not ended by an exception
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)

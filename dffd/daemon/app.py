@@ -764,10 +764,14 @@ class Daemon:
             wake = sched.next_wakeup()
             delay = SCHEDULER_IDLE_S if wake is None else min(SCHEDULER_IDLE_S, wake - now)
             self._wake.clear()
-            if delay > 0:
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(delay):
-                        await self._wake.wait()
+            if delay <= 0:
+                # A wake-up already due: yield anyway, or a scheduler that keeps one in the past
+                # would starve the loop (and the Completion it may be waiting for).
+                await asyncio.sleep(0)
+                continue
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(delay):
+                    await self._wake.wait()
 
     async def _focus_worker(self, camera: Camera) -> None:
         sched = self.scheduler
