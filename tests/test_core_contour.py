@@ -3,12 +3,28 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import pytest
 
-from dffd.core.contour import ContourTracker, TrackerConfig, find_target, radius_of, resample_closed
+from dffd.core.contour import (
+    HUBER_K_PX,
+    IRLS_ITERATIONS,
+    OUTLIER_PX,
+    RIDGE,
+    BoundaryObservation,
+    ContourTracker,
+    FloatArray,
+    Motion,
+    TrackerConfig,
+    find_target,
+    outward_normals,
+    radius_of,
+    resample_closed,
+)
 from dffd.core.synthetic import render_disc
 
 W, H = 640, 480
@@ -124,3 +140,198 @@ def test_one_frame_jump_does_not_shrink_the_contour() -> None:
     assert obs.ok
     assert obs.r_px == pytest.approx(24.0, abs=0.03)
     assert obs.centroid == pytest.approx((312.0, 236.0), abs=0.1)
+
+
+# -- the compiled kernels against the NumPy implementation they replaced ------------------------
+def test_kernels_match_the_numpy_reference_frame_by_frame() -> None:
+    # a moving, growing, partly defocused disc with clutter crossing its edge and a frame where
+    # it vanishes: every branch of the pass (relax, the three motions, outliers, lost frames)
+    for motion in ("similarity", "affine", "translation"):
+        fast, ref = _run_pair(motion)
+        assert len(fast) == len(ref) > 30
+        for a, b in zip(fast, ref, strict=True):
+            assert a.ok == b.ok
+            assert a.r_px == pytest.approx(b.r_px, rel=1e-9)
+            assert a.centroid == pytest.approx(b.centroid, rel=1e-9)
+            assert a.inlier_fraction == b.inlier_fraction
+            np.testing.assert_allclose(a.points, b.points, rtol=1e-9)
+            np.testing.assert_allclose(a.peak_sq, b.peak_sq, rtol=1e-9)  # NaN where NaN
+            if a.ok:
+                assert a.residual_px == pytest.approx(b.residual_px, rel=1e-6, abs=1e-12)
+                assert a.edge_sigma_px == pytest.approx(b.edge_sigma_px, rel=1e-9, nan_ok=True)
+
+
+def _run_pair(motion: Motion) -> tuple[list[BoundaryObservation], list[BoundaryObservation]]:
+    runs = []
+    for cls in (ContourTracker, _ReferenceTracker):
+        rng = np.random.default_rng(21)
+        tracker = cls(TrackerConfig(relax=0.2))
+        img = render_disc(W, H, (300.3, 230.7), 40.0, 0.0, rng=rng)
+        poly = find_target(img)
+        assert poly is not None
+        assert tracker.start(img, poly, 0.0)
+        obs_list = []
+        for k in range(1, 40):
+            c = (300.3 + 1.7 * k, 230.7 - 0.9 * k)
+            blur = 3.0 if k % 5 == 0 else 0.0
+            img = render_disc(W, H, c, 40.0 * (1 + 0.005 * k), blur, rng=rng)
+            if 10 <= k < 20:  # a bright bar across the right edge: outliers
+                x = int(c[0] + 36)
+                cv2.rectangle(img, (x, int(c[1]) - 8), (x + 30, int(c[1]) + 8), 250, -1)
+            if k == 25:  # the target vanishes for a frame
+                img = render_disc(W, H, (-500, -500), 40.0, 0.0, rng=rng)
+            obs_list.append(tracker.update(img, k / 30, motion))
+        runs.append(obs_list)
+    return runs[0], runs[1]
+
+
+class _ReferenceTracker(ContourTracker):
+    """The tracker with the NumPy pass the kernels replaced (operation for operation)."""
+
+    def _step(
+        self, grad: Any, pts: FloatArray, motion: Motion, relax: float
+    ) -> tuple[BoundaryObservation, tuple[float, float], float]:
+        cfg = self.config
+        n = len(pts)
+        c_in = pts.mean(axis=0)
+        centroid_in = (float(c_in[0]), float(c_in[1]))
+        r_in = radius_of(pts)
+        normals = outward_normals(pts)
+        offsets, peak_sq, valid, width2 = self._ref_search(grad, pts, normals)
+        centroid = pts.mean(axis=0)
+        d = pts - centroid
+        scale = max(math.sqrt(float(np.einsum("ij,ij->", d, d)) / n), 1.0)
+        design = _ref_design(d / scale, normals, motion)
+        params, weights, residuals = _ref_irls(design, offsets, valid)
+        inliers = valid & (np.abs(residuals) <= OUTLIER_PX) & (weights > 0)
+        n_in = int(np.count_nonzero(inliers))
+        inlier_fraction = n_in / n
+        if inlier_fraction < cfg.min_inlier_fraction:
+            bad = BoundaryObservation(
+                points=pts,
+                centroid=centroid_in,
+                r_px=r_in,
+                peak_sq=np.full(n, np.nan),
+                inlier_fraction=inlier_fraction,
+                residual_px=math.nan,
+                ok=False,
+            )
+            return bad, centroid_in, r_in
+        new_pts = pts + _ref_motion_field(params, d / scale, motion)
+        if relax > 0:
+            shift = design @ params
+            resid = np.where(inliers, offsets - shift, 0.0)
+            resid = (np.roll(resid, 1) + 2 * resid + np.roll(resid, -1)) / 4.0
+            new_pts = new_pts + relax * resid[:, None] * normals
+        new_pts = resample_closed(new_pts, n)
+        c = new_pts.mean(axis=0)
+        dn = new_pts - c
+        r = math.sqrt(float(np.einsum("ij,ij->", dn, dn)) / n)
+        h, w = grad.shape
+        ok = (
+            cfg.min_radius_px <= r <= cfg.max_radius_px
+            and float(new_pts[:, 0].min()) >= 0
+            and float(new_pts[:, 1].min()) >= 0
+            and float(new_pts[:, 0].max()) < w
+            and float(new_pts[:, 1].max()) < h
+        )
+        w2 = width2[inliers & np.isfinite(width2)]
+        edge_sigma2 = float(np.median(w2)) if len(w2) >= 8 else math.nan
+        if cfg.curvature_correction and math.isfinite(edge_sigma2) and r > 0:
+            r += edge_sigma2 / (2.0 * r)
+        res_in = residuals[inliers]
+        obs = BoundaryObservation(
+            points=new_pts,
+            centroid=(float(c[0]), float(c[1])),
+            r_px=r,
+            peak_sq=np.where(inliers, peak_sq, np.nan),
+            inlier_fraction=inlier_fraction,
+            residual_px=math.sqrt(float(res_in @ res_in) / n_in),
+            ok=ok,
+            edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
+        )
+        return obs, centroid_in, r_in
+
+    def _ref_search(
+        self, grad: Any, pts: FloatArray, normals: FloatArray
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_], FloatArray]:
+        cfg = self.config
+        s = cfg.search_px
+        n = len(pts)
+        (xmin, ymin), (xmax, ymax) = pts.min(axis=0).tolist(), pts.max(axis=0).tolist()
+        window = grad.window(xmin, ymin, xmax, ymax, s + 4)
+        if window is None:
+            return np.zeros(n), np.full(n, np.nan), np.zeros(n, dtype=bool), np.full(n, np.nan)
+        gx, gy, x0, y0 = window
+        steps = np.arange(-s, s + 1, dtype=np.float64)[None, :]
+        mapx = (pts[:, 0:1] + steps * normals[:, 0:1] - x0).astype(np.float32)
+        mapy = (pts[:, 1:2] + steps * normals[:, 1:2] - y0).astype(np.float32)
+        bx = cv2.remap(gx, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        by = cv2.remap(gy, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        mag = bx * bx + by * by
+        n32 = normals.astype(np.float32) * np.float32(self._polarity)
+        mag[bx * n32[:, 0:1] + by * n32[:, 1:2] >= 0] = 0.0
+        j = np.argmax(mag, axis=1)
+        rows = np.arange(n)
+        last = 2 * s
+        ym = mag[rows, np.maximum(j - 1, 0)].astype(np.float64)
+        y0v = mag[rows, j].astype(np.float64)
+        yp = mag[rows, np.minimum(j + 1, last)].astype(np.float64)
+        interior = (j > 0) & (j < last)
+        tiny = 1e-6
+        lm, l0, lp = np.log(ym + tiny), np.log(y0v + tiny), np.log(yp + tiny)
+        denom = lm - 2 * l0 + lp
+        good = interior & (denom < 0) & (ym > 0) & (yp > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            delta = np.where(good, 0.5 * (lm - lp) / denom, 0.0)
+            width2 = np.where(good, -2.0 / denom, np.nan)
+        np.clip(delta, -0.5, 0.5, out=delta)
+        peak_val = np.where(good, np.exp(l0 - 0.25 * (lm - lp) * delta) - tiny, y0v)
+        offsets = (j - s) + delta
+        med = float(np.median(peak_val[interior])) if interior.any() else 0.0
+        valid = interior & (peak_val >= max(cfg.min_rel_peak * med, cfg.min_abs_grad**2))
+        return offsets, peak_val, valid, width2
+
+
+def _ref_design(d: FloatArray, normals: FloatArray, motion: Motion) -> FloatArray:
+    nx, ny = normals[:, 0], normals[:, 1]
+    if motion == "translation":
+        return normals.copy()
+    dx, dy = d[:, 0], d[:, 1]
+    if motion == "similarity":
+        return np.column_stack([nx * dx + ny * dy, ny * dx - nx * dy, nx, ny])
+    return np.column_stack([nx * dx, nx * dy, ny * dx, ny * dy, nx, ny])
+
+
+def _ref_motion_field(params: FloatArray, d: FloatArray, motion: Motion) -> FloatArray:
+    if motion == "translation":
+        return np.broadcast_to(params[:2], d.shape).copy()
+    if motion == "similarity":
+        a, b, tx, ty = params
+        return np.asarray(d @ np.array([[a, b], [-b, a]]) + np.array([tx, ty]))
+    a11, a12, a21, a22, tx, ty = params
+    return np.asarray(d @ np.array([[a11, a21], [a12, a22]]) + np.array([tx, ty]))
+
+
+def _ref_irls(
+    design: FloatArray, y: FloatArray, valid: npt.NDArray[np.bool_]
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    k = design.shape[1]
+    w = valid.astype(np.float64)
+    params: FloatArray = np.zeros(k)
+    yv = np.where(valid, y, 0.0)
+    ridge = RIDGE * max(float(np.count_nonzero(valid)), 1.0) * np.eye(k)
+    res = y.copy()
+    for _ in range(IRLS_ITERATIONS):
+        if np.count_nonzero(w) < k:
+            break
+        a = design * w[:, None]
+        params = np.linalg.solve(design.T @ a + ridge, a.T @ yv)
+        res = y - design @ params
+        absr = np.abs(res)
+        w_new = np.where(valid, np.minimum(1.0, HUBER_K_PX / np.maximum(absr, 1e-12)), 0.0)
+        w_new[absr > 2 * OUTLIER_PX] = 0.0
+        if np.array_equal(w_new, w):
+            break
+        w = w_new
+    return params, w, res

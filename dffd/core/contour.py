@@ -12,16 +12,22 @@ resampled. The same per-normal maxima feed the focus cost (2).
 from __future__ import annotations
 
 import functools
+import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal, TypeVar, cast
 
 import cv2
+import numba
 import numpy as np
 import numpy.typing as npt
 
 FloatArray = npt.NDArray[np.float64]
 Motion = Literal["translation", "similarity", "affine"]
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+logger = logging.getLogger(__name__)
 
 HUBER_K_PX = 1.0  # Huber threshold on normal residuals: about 3x the sub-pixel edge noise
 OUTLIER_PX = 3.0  # residuals beyond this after IRLS are clutter/occlusion, not the target edge
@@ -83,6 +89,17 @@ class ContourTracker:
         self._t: float | None = None
         self._polarity = 1.0  # +1: intensity drops outward (bright target)
         self._bad_frames = 0
+        self._ws: _Workspace | None = None
+        self._cfg_vec = np.array(
+            [
+                config.min_rel_peak,
+                config.min_abs_grad,
+                config.min_inlier_fraction,
+                config.min_radius_px,
+                config.max_radius_px,
+                1.0 if config.curvature_correction else 0.0,
+            ]
+        )
 
     @property
     def active(self) -> bool:
@@ -117,7 +134,7 @@ class ContourTracker:
         obs: BoundaryObservation | None = None
         grad = _GradientCache(gray, self.config.presmooth_sigma_px)
         for _ in range(6):
-            obs = self._step(grad, self._points, "affine", relax=0.5)
+            obs, _, _ = self._step(grad, self._points, "affine", relax=0.5)
             if not obs.ok:
                 self.reset()
                 return False
@@ -132,17 +149,14 @@ class ContourTracker:
         predicted = self._points + self._velocity * dt
         relax = self.config.relax if motion != "translation" else 0.0
         grad = _GradientCache(gray, self.config.presmooth_sigma_px)
-        obs = self._step(grad, predicted, motion, relax)
-        current = predicted
+        obs, c_in, r_in = self._step(grad, predicted, motion, relax)
         for _ in range(self.config.max_passes - 1):
             if not obs.ok:
                 break
-            shift = obs.points.mean(axis=0) - current.mean(axis=0)
-            moved = float(np.hypot(shift[0], shift[1])) + abs(obs.r_px - radius_of(current))
-            if moved <= self.config.refine_px:
+            moved = math.hypot(obs.centroid[0] - c_in[0], obs.centroid[1] - c_in[1])
+            if moved + abs(obs.r_px - r_in) <= self.config.refine_px:
                 break
-            current = obs.points
-            again = self._step(grad, current, motion, relax)
+            again, c_in, r_in = self._step(grad, obs.points, motion, relax)
             if not again.ok:
                 break
             obs = again
@@ -168,110 +182,59 @@ class ContourTracker:
     # -- one measurement + fit on one image -------------------------------------------------
     def _step(
         self, grad: _GradientCache, pts: FloatArray, motion: Motion, relax: float
-    ) -> BoundaryObservation:
+    ) -> tuple[BoundaryObservation, tuple[float, float], float]:
+        """One pass: (observation, centroid of ``pts``, radius_of(``pts``)).
+
+        The per-normal search and the robust fit run in the compiled kernels below; their
+        NumPy reference is kept in tests/test_core_contour.py, which checks them against it.
+        """
         cfg = self.config
+        pts = np.ascontiguousarray(pts, dtype=np.float64)
         n = len(pts)
-        normals = outward_normals(pts)
-        offsets, peak_sq, valid, width2 = self._search(grad, pts, normals)
-        centroid = pts.mean(axis=0)
-        d = pts - centroid
-        scale = max(math.sqrt(float(np.einsum("ij,ij->", d, d)) / n), 1.0)
-        design = _design(d / scale, normals, motion)
-        params, weights, residuals = _irls(design, offsets, valid)
-        inliers = valid & (np.abs(residuals) <= OUTLIER_PX) & (weights > 0)
-        n_in = int(np.count_nonzero(inliers))
-        inlier_fraction = n_in / n
-        if inlier_fraction < cfg.min_inlier_fraction:
-            return _bad(pts, peak_sq, inlier_fraction)
-        new_pts = pts + _motion_field(params, d / scale, motion)
-        if relax > 0:
-            # adopt a fraction of the non-rigid residual (smoothed along the contour) on inliers
-            shift = design @ params  # normal displacement per point, from the fitted motion
-            resid = np.where(inliers, offsets - shift, 0.0)
-            resid = (np.roll(resid, 1) + 2 * resid + np.roll(resid, -1)) / 4.0
-            new_pts = new_pts + relax * resid[:, None] * normals
-        new_pts = resample_closed(new_pts, n)
-        c = new_pts.mean(axis=0)
-        dn = new_pts - c
-        r = math.sqrt(float(np.einsum("ij,ij->", dn, dn)) / n)
-        h, w = grad.shape
-        ok = (
-            cfg.min_radius_px <= r <= cfg.max_radius_px
-            and float(new_pts[:, 0].min()) >= 0
-            and float(new_pts[:, 1].min()) >= 0
-            and float(new_pts[:, 0].max()) < w
-            and float(new_pts[:, 1].max()) < h
-        )
-        # The maximum of |∇I| across a blurred curved edge lies inside it: for a disc of
-        # radius a blurred by a Gaussian σ, −∂I/∂ρ ∝ I1(ρa/σ²) e^{−(ρ²+a²)/2σ²} ≈ ρ^{−1/2}
-        # e^{−(ρ−a)²/2σ²}, whose peak is at ρ = a − σ²/(2a). σ² (image blur + pre-smoothing +
-        # Sobel) is read off the peak itself: ln |∇I|² = const − x²/σ² is the log-parabola the
-        # sub-pixel step fits. Measured: r − a = −0.9/a px on synthetic discs of 22–85 px
-        # before (−0.19 % at 22 px: a depth-dependent bias of z s = R), within ±0.005 px after.
-        w2 = width2[inliers & np.isfinite(width2)]
-        edge_sigma2 = _median(w2) if len(w2) >= 8 else math.nan
-        if cfg.curvature_correction and math.isfinite(edge_sigma2) and r > 0:
-            r += edge_sigma2 / (2.0 * r)
-        res_in = residuals[inliers]
-        rms = math.sqrt(float(res_in @ res_in) / n_in)
-        peaks = np.where(inliers, peak_sq, np.nan)
-        return BoundaryObservation(
+        ws = self._workspace(n)
+        xmin, ymin, xmax, ymax = _kernel_normals(pts, ws.normals)
+        s = cfg.search_px
+        window = grad.window(xmin, ymin, xmax, ymax, s + 4)
+        if window is None:
+            has_window = False
+            bx = by = ws.mapx  # not read by the kernel
+        else:
+            gx, gy, x0, y0 = window
+            _kernel_maps(pts, ws.normals, s, float(x0), float(y0), ws.mapx, ws.mapy)
+            bx = np.asarray(cv2.remap(gx, ws.mapx, ws.mapy, cv2.INTER_LINEAR), dtype=np.float32)
+            by = np.asarray(cv2.remap(gy, ws.mapx, ws.mapy, cv2.INTER_LINEAR), dtype=np.float32)
+            has_window = True
+        new_pts = np.empty((n, 2))
+        peaks = np.empty(n)
+        out = ws.out
+        _kernel_fit(
+            bx, by, has_window, pts, ws.normals, self._polarity, s, _MOTION_CODE[motion],
+            relax, self._cfg_vec, grad.shape[1], grad.shape[0], new_pts, peaks, ws.mag,
+            ws.scratch, ws.design, out,
+        )  # fmt: skip
+        centroid_in = (float(out[_O_CX_IN]), float(out[_O_CY_IN]))
+        r_in = float(out[_O_R_IN])
+        inlier_fraction = float(out[_O_INLIER_FRACTION])
+        if out[_O_STATUS] != 0:
+            return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in
+        edge_sigma2 = float(out[_O_EDGE_SIGMA2])
+        obs = BoundaryObservation(
             points=new_pts,
-            centroid=(float(c[0]), float(c[1])),
-            r_px=r,
+            centroid=(float(out[_O_CX]), float(out[_O_CY])),
+            r_px=float(out[_O_R]),
             peak_sq=peaks,
             inlier_fraction=inlier_fraction,
-            residual_px=rms,
-            ok=ok,
+            residual_px=float(out[_O_RMS]),
+            ok=bool(out[_O_OK] != 0),
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
         )
+        return obs, centroid_in, r_in
 
-    def _search(
-        self, grad: _GradientCache, pts: FloatArray, normals: FloatArray
-    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_], FloatArray]:
-        """Per normal: sub-pixel offset of the max ||∇I||² (target polarity), its value, valid,
-        and the squared Gaussian width σ² of the peak (NaN where not measurable)."""
-        cfg = self.config
-        s = cfg.search_px
-        n = len(pts)
-        window = grad.window(pts, s + 4)
-        if window is None:
-            return np.zeros(n), np.full(n, np.nan), np.zeros(n, dtype=bool), np.full(n, np.nan)
-        gx, gy, x0, y0 = window
-        steps = _steps(s)
-        mapx = (pts[:, 0:1] + steps * normals[:, 0:1] - x0).astype(np.float32)
-        mapy = (pts[:, 1:2] + steps * normals[:, 1:2] - y0).astype(np.float32)
-        bx = cv2.remap(gx, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        by = cv2.remap(gy, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        mag = bx * bx + by * by
-        n32 = normals.astype(np.float32) * np.float32(self._polarity)
-        # keep the target's edge polarity only: clutter edges of the other sign are ignored
-        mag[bx * n32[:, 0:1] + by * n32[:, 1:2] >= 0] = 0.0
-        j = np.argmax(mag, axis=1)
-        rows = np.arange(n)
-        last = 2 * s
-        jm = np.maximum(j - 1, 0)
-        jp = np.minimum(j + 1, last)
-        ym = mag[rows, jm].astype(np.float64)
-        y0v = mag[rows, j].astype(np.float64)
-        yp = mag[rows, jp].astype(np.float64)
-        interior = (j > 0) & (j < last)
-        # Log-parabola (Gaussian) interpolation: the gradient magnitude of a blurred edge is
-        # close to a Gaussian, whose log is exactly a parabola; a plain parabola would lock the
-        # edge towards the sample grid and bias r by ~0.1 % whenever the grid phase changes.
-        tiny = 1e-6
-        lm, l0, lp = np.log(ym + tiny), np.log(y0v + tiny), np.log(yp + tiny)
-        denom = lm - 2 * l0 + lp
-        good = interior & (denom < 0) & (ym > 0) & (yp > 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            delta = np.where(good, 0.5 * (lm - lp) / denom, 0.0)
-            width2 = np.where(good, -2.0 / denom, np.nan)  # ln|∇I|² = c − x²/σ²: Δ² = −2/σ²
-        np.clip(delta, -0.5, 0.5, out=delta)
-        peak_val = np.where(good, np.exp(l0 - 0.25 * (lm - lp) * delta) - tiny, y0v)
-        offsets = (j - s) + delta
-        med = _median(peak_val[interior]) if interior.any() else 0.0
-        valid = interior & (peak_val >= max(cfg.min_rel_peak * med, cfg.min_abs_grad**2))
-        return offsets, peak_val, valid, width2
+    def _workspace(self, n: int) -> _Workspace:
+        ws = self._ws
+        if ws is None or ws.n != n:
+            ws = self._ws = _Workspace(n, 2 * self.config.search_px + 1)
+        return ws
 
     def _estimate_polarity(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> float:
         normals = outward_normals(pts)
@@ -378,66 +341,14 @@ def radius_of(points: FloatArray) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
-def _design(d: FloatArray, normals: FloatArray, motion: Motion) -> FloatArray:
-    """Normal displacement per unit motion parameter; ``d`` = (points − centroid) / scale."""
-    nx, ny = normals[:, 0], normals[:, 1]
-    if motion == "translation":
-        return normals.copy()
-    dx, dy = d[:, 0], d[:, 1]
-    if motion == "similarity":
-        # δ = [[a, -b], [b, a]] d + t
-        return np.column_stack([nx * dx + ny * dy, ny * dx - nx * dy, nx, ny])
-    return np.column_stack([nx * dx, nx * dy, ny * dx, ny * dy, nx, ny])
-
-
-def _motion_field(params: FloatArray, d: FloatArray, motion: Motion) -> FloatArray:
-    if motion == "translation":
-        return np.broadcast_to(params[:2], d.shape).copy()
-    if motion == "similarity":
-        a, b, tx, ty = params
-        lin = np.array([[a, b], [-b, a]])  # row-vector form of [[a, -b], [b, a]]
-        return np.asarray(d @ lin + np.array([tx, ty]), dtype=np.float64)
-    a11, a12, a21, a22, tx, ty = params
-    lin = np.array([[a11, a21], [a12, a22]])
-    return np.asarray(d @ lin + np.array([tx, ty]), dtype=np.float64)
-
-
-def _irls(
-    design: FloatArray, y: FloatArray, valid: npt.NDArray[np.bool_]
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Huber-weighted least squares with a small ridge; returns params, weights, residuals.
-
-    Stops early when the weights repeat: the next solve would return the same parameters (on a
-    clean edge every residual is below the Huber threshold and one re-weighting settles it).
-    """
-    k = design.shape[1]
-    w = valid.astype(np.float64)
-    params: FloatArray = np.zeros(k)
-    yv = np.where(valid, y, 0.0)
-    ridge = RIDGE * max(float(np.count_nonzero(valid)), 1.0) * _eye(k)
-    res = y.copy()
-    for _ in range(IRLS_ITERATIONS):
-        if np.count_nonzero(w) < k:
-            break
-        a = design * w[:, None]
-        params = np.asarray(np.linalg.solve(design.T @ a + ridge, a.T @ yv), dtype=np.float64)
-        res = y - design @ params
-        absr = np.abs(res)
-        w_new = np.where(valid, np.minimum(1.0, HUBER_K_PX / np.maximum(absr, 1e-12)), 0.0)
-        w_new[absr > 2 * OUTLIER_PX] = 0.0
-        if np.array_equal(w_new, w):
-            break
-        w = w_new
-    return params, w, res
-
-
-def _bad(pts: FloatArray, peak_sq: FloatArray, inlier_fraction: float) -> BoundaryObservation:
-    c = pts.mean(axis=0)
+def _bad(
+    pts: FloatArray, centroid: tuple[float, float], r_px: float, n: int, inlier_fraction: float
+) -> BoundaryObservation:
     return BoundaryObservation(
         points=pts,
-        centroid=(float(c[0]), float(c[1])),
-        r_px=radius_of(pts),
-        peak_sq=np.full_like(peak_sq, np.nan),
+        centroid=centroid,
+        r_px=r_px,
+        peak_sq=np.full(n, np.nan),
         inlier_fraction=inlier_fraction,
         residual_px=math.nan,
         ok=False,
@@ -473,11 +384,10 @@ class _GradientCache:
         self.shape: tuple[int, int] = (int(gray.shape[0]), int(gray.shape[1]))
 
     def window(
-        self, pts: FloatArray, margin: int
+        self, xmin: float, ymin: float, xmax: float, ymax: float, margin: int
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], int, int] | None:
-        """(gx, gy, x0, y0) of a window holding ``pts`` ± ``margin``, or None."""
+        """(gx, gy, x0, y0) of a window holding the box of the points ± ``margin``, or None."""
         h, w = self.shape
-        (xmin, ymin), (xmax, ymax) = pts.min(axis=0).tolist(), pts.max(axis=0).tolist()
         x0 = max(math.floor(xmin) - margin, 0)
         y0 = max(math.floor(ymin) - margin, 0)
         x1 = min(math.ceil(xmax) + margin + 1, w)
@@ -496,14 +406,6 @@ class _GradientCache:
 
 
 @functools.cache
-def _steps(search_px: int) -> FloatArray:
-    """Sample offsets along a normal, −s … s px, as a row."""
-    steps: FloatArray = np.arange(-search_px, search_px + 1, dtype=np.float64)[None, :]
-    steps.flags.writeable = False
-    return steps
-
-
-@functools.cache
 def _neighbours(n: int) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     """Indices of the next and previous vertex of a closed polygon of ``n`` points."""
     idx = np.arange(n)
@@ -513,15 +415,461 @@ def _neighbours(n: int) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     return nxt, prv
 
 
-@functools.cache
-def _eye(k: int) -> FloatArray:
-    eye: FloatArray = np.eye(k)
-    eye.flags.writeable = False
-    return eye
+# -- compiled kernels -----------------------------------------------------------------------
+# A pass works on 64-element arrays, where NumPy's per-call overhead (~1-5 µs a call, ~60 calls
+# a pass) was the whole cost; the kernels do the same arithmetic in one call each. They mirror
+# the NumPy reference in tests/test_core_contour.py operation for operation (float32 where it
+# was float32), so results agree to rounding (~1e-12 relative; the test asserts 1e-9).
+
+_MOTION_CODE: dict[Motion, int] = {"translation": 0, "similarity": 1, "affine": 2}
+# slots of the kernel's scalar output vector
+_O_STATUS, _O_OK, _O_R, _O_CX, _O_CY, _O_INLIER_FRACTION = 0, 1, 2, 3, 4, 5
+_O_RMS, _O_EDGE_SIGMA2, _O_CX_IN, _O_CY_IN, _O_R_IN = 6, 7, 8, 9, 10
+_N_OUT = 11
+# columns of the per-normal scratch array
+_S_OFFSET, _S_PEAK, _S_VALID, _S_WIDTH2, _S_INTERIOR, _S_W, _S_WNEW, _S_RES = range(8)
+_S_TMP, _S_TMP2 = 8, 9
+_N_SCRATCH = 10
+_TINY = 1e-6  # added before the log of |∇I|² (log-parabola), as in the reference
+# numba types of the kernels' arrays (all C-contiguous)
+_M, _M32, _V = "float64[:, ::1]", "float32[:, ::1]", "float64[::1]"
 
 
-def _median(values: FloatArray) -> float:
-    """np.median of a small 1-D array (same value) without its per-call overhead."""
+def _jit(signature: str) -> Callable[[_F], _F]:
+    """Compile ``fn`` now for exactly ``signature`` (no compilation on a later call).
+
+    ``cache=True`` reuses the machine code across processes (tests, daemon restarts) from
+    ``NUMBA_CACHE_DIR``, else ``__pycache__`` next to this file, else ``~/.cache``; numba raises
+    when none is writable (a read-only install without a state directory): compile in memory
+    then — it only costs start-up time.
+    """
+
+    def compile_now(fn: _F) -> _F:
+        try:
+            kernel = numba.njit(cache=True, nogil=True, fastmath=False)(fn)
+        except RuntimeError as exc:
+            logger.info("numba cache not writable (%s): compiling %s in memory", exc, fn.__name__)
+            kernel = numba.njit(cache=False, nogil=True, fastmath=False)(fn)
+        kernel.compile(signature)
+        kernel.disable_compile()
+        return cast(_F, kernel)
+
+    return compile_now
+
+
+class _Workspace:
+    """Preallocated arrays of one tracker's passes (no allocation per pass but the outputs)."""
+
+    __slots__ = ("design", "mag", "mapx", "mapy", "n", "normals", "out", "scratch")
+
+    def __init__(self, n: int, n_steps: int) -> None:
+        self.n = n
+        self.normals = np.empty((n, 2))
+        self.mapx = np.empty((n, n_steps), dtype=np.float32)
+        self.mapy = np.empty((n, n_steps), dtype=np.float32)
+        self.mag = np.empty((n, n_steps), dtype=np.float32)
+        self.scratch = np.empty((_N_SCRATCH, n))
+        self.design = np.empty((n, 6))
+        self.out = np.empty(_N_OUT)
+
+
+@_jit(f"UniTuple(float64, 4)({_M}, {_M})")
+def _kernel_normals(pts: FloatArray, normals: FloatArray) -> tuple[float, float, float, float]:
+    """outward_normals(pts) into ``normals``; returns the bounding box (xmin, ymin, xmax, ymax)."""
+    n = pts.shape[0]
+    area2 = 0.0
+    xmin = xmax = pts[0, 0]
+    ymin = ymax = pts[0, 1]
+    for i in range(n):
+        nx_i = (i + 1) % n
+        pv = (i - 1) % n
+        tx = pts[nx_i, 0] - pts[pv, 0]
+        ty = pts[nx_i, 1] - pts[pv, 1]
+        norm = math.sqrt(ty * ty + tx * tx)
+        norm = max(norm, 1e-12)
+        normals[i, 0] = ty / norm
+        normals[i, 1] = -tx / norm
+        area2 += pts[i, 0] * pts[nx_i, 1] - pts[nx_i, 0] * pts[i, 1]
+        xmin = min(xmin, pts[i, 0])
+        xmax = max(xmax, pts[i, 0])
+        ymin = min(ymin, pts[i, 1])
+        ymax = max(ymax, pts[i, 1])
+    if 0.5 * area2 >= 0:  # counter-clockwise in image coordinates (y down): flip to outward
+        for i in range(n):
+            normals[i, 0] = -normals[i, 0]
+            normals[i, 1] = -normals[i, 1]
+    return xmin, ymin, xmax, ymax
+
+
+@_jit(f"void({_M}, {_M}, int64, float64, float64, {_M32}, {_M32})")
+def _kernel_maps(  # noqa: PLR0917 - numba kernels take positional arguments
+    pts: FloatArray,
+    normals: FloatArray,
+    s: int,
+    x0: float,
+    y0: float,
+    mapx: npt.NDArray[np.float32],
+    mapy: npt.NDArray[np.float32],
+) -> None:
+    """Sample positions along every normal, −s … s px, in window coordinates (float32)."""
+    for i in range(pts.shape[0]):
+        for j in range(2 * s + 1):
+            step = float(j - s)
+            mapx[i, j] = np.float32(pts[i, 0] + step * normals[i, 0] - x0)
+            mapy[i, j] = np.float32(pts[i, 1] + step * normals[i, 1] - y0)
+
+
+@_jit(f"int64({_M}, {_M}, float64, float64, float64, int64, {_M})")
+def _kernel_design(  # noqa: PLR0917 - numba kernels take positional arguments
+    pts: FloatArray,
+    normals: FloatArray,
+    cx: float,
+    cy: float,
+    scale: float,
+    motion: int,
+    design: FloatArray,
+) -> int:
+    """Normal displacement per unit motion parameter into ``design``; returns their number."""
+    for i in range(pts.shape[0]):
+        nx = normals[i, 0]
+        ny = normals[i, 1]
+        dx = (pts[i, 0] - cx) / scale
+        dy = (pts[i, 1] - cy) / scale
+        if motion == 0:
+            design[i, 0] = nx
+            design[i, 1] = ny
+        elif motion == 1:  # δ = [[a, -b], [b, a]] d + t
+            design[i, 0] = nx * dx + ny * dy
+            design[i, 1] = ny * dx - nx * dy
+            design[i, 2] = nx
+            design[i, 3] = ny
+        else:
+            design[i, 0] = nx * dx
+            design[i, 1] = nx * dy
+            design[i, 2] = ny * dx
+            design[i, 3] = ny * dy
+            design[i, 4] = nx
+            design[i, 5] = ny
+    return 2 if motion == 0 else (4 if motion == 1 else 6)
+
+
+@_jit(f"float64({_V})")
+def _kernel_median(values: FloatArray) -> float:
+    """np.median of a small 1-D array (same value)."""
     v = np.sort(values)
     m = len(v) // 2
     return float(v[m]) if len(v) % 2 else float((v[m - 1] + v[m]) / 2.0)
+
+
+@_jit(f"void({_M}, {_M})")
+def _kernel_resample(points: FloatArray, out: FloatArray) -> None:
+    """resample_closed(points, len(out)) into ``out``."""
+    m = points.shape[0]
+    n = out.shape[0]
+    cum = np.empty(m + 1)
+    xs = np.empty(m + 1)
+    ys = np.empty(m + 1)
+    cum[0] = 0.0
+    for i in range(m + 1):
+        xs[i] = points[i % m, 0]
+        ys[i] = points[i % m, 1]
+        if i > 0:
+            cum[i] = cum[i - 1] + math.hypot(xs[i] - xs[i - 1], ys[i] - ys[i - 1])
+    total = cum[m]
+    if total <= 0:
+        for i in range(n):
+            out[i, 0] = points[0, 0]
+            out[i, 1] = points[0, 1]
+        return
+    s = np.empty(n)
+    for i in range(n):
+        s[i] = i * (total / n)
+    out[:, 0] = np.interp(s, cum, xs)
+    out[:, 1] = np.interp(s, cum, ys)
+
+
+@_jit(f"void({_M}, {_V}, int64, {_V})")
+def _kernel_solve(a: FloatArray, b: FloatArray, k: int, x: FloatArray) -> None:
+    """x[:k] = solve(a[:k, :k], b[:k]) by Gaussian elimination with partial pivoting."""
+    for col in range(k):
+        piv = col
+        for r in range(col + 1, k):
+            if abs(a[r, col]) > abs(a[piv, col]):
+                piv = r
+        if piv != col:
+            for c in range(k):
+                a[col, c], a[piv, c] = a[piv, c], a[col, c]
+            b[col], b[piv] = b[piv], b[col]
+        for r in range(col + 1, k):
+            f = a[r, col] / a[col, col]
+            for c in range(col, k):
+                a[r, c] -= f * a[col, c]
+            b[r] -= f * b[col]
+    for r in range(k - 1, -1, -1):
+        acc = b[r]
+        for c in range(r + 1, k):
+            acc -= a[r, c] * x[c]
+        x[r] = acc / a[r, r]
+
+
+@_jit(f"void({_M}, int64, {_V}, {_V}, {_M}, {_V})")
+def _kernel_irls(  # noqa: PLR0917 - numba kernels take positional arguments
+    design: FloatArray,
+    k: int,
+    y: FloatArray,
+    valid: FloatArray,
+    scratch: FloatArray,
+    params: FloatArray,
+) -> None:
+    """Huber-weighted least squares with a small ridge (weights, residuals into ``scratch``).
+
+    Stops early when the weights repeat: the next solve would return the same parameters (on a
+    clean edge every residual is below the Huber threshold and one re-weighting settles it).
+    """
+    n = design.shape[0]
+    w = scratch[_S_W]
+    w_new = scratch[_S_WNEW]
+    res = scratch[_S_RES]
+    n_valid = 0
+    for i in range(n):
+        w[i] = valid[i]
+        res[i] = y[i]
+        if valid[i] != 0:
+            n_valid += 1
+    ridge = RIDGE * max(float(n_valid), 1.0)
+    a = np.empty((6, 6))
+    b = np.empty(6)
+    for _ in range(IRLS_ITERATIONS):
+        nz = 0
+        for i in range(n):
+            if w[i] != 0:
+                nz += 1
+        if nz < k:
+            break
+        for p in range(k):
+            b[p] = 0.0
+            for q in range(k):
+                a[p, q] = 0.0
+        for i in range(n):
+            wi = w[i]
+            if wi == 0:
+                continue
+            yi = y[i] if valid[i] != 0 else 0.0
+            for p in range(k):
+                dp = design[i, p] * wi
+                b[p] += dp * yi
+                for q in range(k):
+                    a[q, p] += design[i, q] * dp
+        for p in range(k):
+            a[p, p] += ridge
+        _kernel_solve(a, b, k, params)
+        same = True
+        for i in range(n):
+            fit = 0.0
+            for c in range(k):
+                fit += design[i, c] * params[c]
+            res[i] = y[i] - fit
+            absr = abs(res[i])
+            wn = 0.0
+            if valid[i] != 0:
+                wn = min(1.0, HUBER_K_PX / max(absr, 1e-12))
+            if absr > 2 * OUTLIER_PX:
+                wn = 0.0
+            w_new[i] = wn
+            if wn != w[i]:
+                same = False
+        if same:
+            break
+        for i in range(n):
+            w[i] = w_new[i]
+
+
+@_jit(
+    f"void({_M32}, {_M32}, boolean, {_M}, {_M}, float64, int64, int64, float64, {_V}, int64, "
+    f"int64, {_M}, {_V}, {_M32}, {_M}, {_M}, {_V})"
+)
+def _kernel_fit(  # noqa: PLR0917 - numba kernels take positional arguments
+    bx: npt.NDArray[np.float32],
+    by: npt.NDArray[np.float32],
+    has_window: bool,
+    pts: FloatArray,
+    normals: FloatArray,
+    polarity: float,
+    s: int,
+    motion: int,
+    relax: float,
+    cfg: FloatArray,
+    width: int,
+    height: int,
+    new_pts: FloatArray,
+    peaks: FloatArray,
+    mag: npt.NDArray[np.float32],
+    scratch: FloatArray,
+    design: FloatArray,
+    out: FloatArray,
+) -> None:
+    """Peak search along the normals, robust shape-space fit, new contour (see _step)."""
+    n = pts.shape[0]
+    last = 2 * s
+    offset = scratch[_S_OFFSET]
+    peak = scratch[_S_PEAK]
+    valid = scratch[_S_VALID]
+    width2 = scratch[_S_WIDTH2]
+    interior = scratch[_S_INTERIOR]
+    tmp = scratch[_S_TMP]
+    # -- per normal: sub-pixel max of |∇I|² of the target's polarity (log-parabola) --------
+    if has_window:
+        pol = np.float32(polarity)
+        n_int = 0
+        for i in range(n):
+            nx32 = np.float32(normals[i, 0]) * pol
+            ny32 = np.float32(normals[i, 1]) * pol
+            jbest = 0
+            best = np.float32(0.0)
+            for j in range(last + 1):
+                gx = bx[i, j]
+                gy = by[i, j]
+                m = gx * gx + gy * gy
+                if gx * nx32 + gy * ny32 >= 0:
+                    m = np.float32(0.0)  # clutter edges of the other sign are ignored
+                mag[i, j] = m
+                if j == 0 or m > best:
+                    best = m
+                    jbest = j
+            jm = max(jbest - 1, 0)
+            jp = min(jbest + 1, last)
+            ym = float(mag[i, jm])
+            y0v = float(mag[i, jbest])
+            yp = float(mag[i, jp])
+            inner = 0 < jbest < last
+            lm = math.log(ym + _TINY)
+            l0 = math.log(y0v + _TINY)
+            lp = math.log(yp + _TINY)
+            denom = lm - 2 * l0 + lp
+            delta = 0.0
+            if inner and denom < 0 and ym > 0 and yp > 0:
+                delta = min(max(0.5 * (lm - lp) / denom, -0.5), 0.5)
+                width2[i] = -2.0 / denom  # ln|∇I|² = c − x²/σ²: Δ² = −2/σ²
+                peak[i] = math.exp(l0 - 0.25 * (lm - lp) * delta) - _TINY
+            else:
+                width2[i] = np.nan
+                peak[i] = y0v
+            offset[i] = (jbest - s) + delta
+            interior[i] = 1.0 if inner else 0.0
+            if inner:
+                tmp[n_int] = peak[i]
+                n_int += 1
+        med = _kernel_median(tmp[:n_int]) if n_int > 0 else 0.0
+        threshold = max(cfg[0] * med, cfg[1] ** 2)
+        for i in range(n):
+            valid[i] = 1.0 if interior[i] != 0 and peak[i] >= threshold else 0.0
+    else:
+        for i in range(n):
+            offset[i] = 0.0
+            peak[i] = np.nan
+            valid[i] = 0.0
+            width2[i] = np.nan
+    # -- geometry about the centroid ---------------------------------------------------------
+    cx = 0.0
+    cy = 0.0
+    for i in range(n):
+        cx += pts[i, 0]
+        cy += pts[i, 1]
+    cx /= n
+    cy /= n
+    ss = 0.0
+    for i in range(n):
+        dx = pts[i, 0] - cx
+        dy = pts[i, 1] - cy
+        ss += dx * dx + dy * dy
+    out[_O_CX_IN] = cx
+    out[_O_CY_IN] = cy
+    out[_O_R_IN] = math.sqrt(ss / n)
+    scale = max(math.sqrt(ss / n), 1.0)
+    k = _kernel_design(pts, normals, cx, cy, scale, motion, design)
+    params = np.zeros(6)
+    _kernel_irls(design, k, offset, valid, scratch, params)
+    w = scratch[_S_W]
+    res = scratch[_S_RES]
+    n_in = 0
+    for i in range(n):
+        inl = valid[i] != 0 and abs(res[i]) <= OUTLIER_PX and w[i] > 0
+        interior[i] = 1.0 if inl else 0.0  # reused: inlier flag from here on
+        if inl:
+            n_in += 1
+    inliers = interior
+    inlier_fraction = n_in / n
+    out[_O_INLIER_FRACTION] = inlier_fraction
+    if inlier_fraction < cfg[2]:
+        out[_O_STATUS] = 1.0
+        return
+    out[_O_STATUS] = 0.0
+    # -- apply the motion (+ a fraction of the smoothed non-rigid residual) ------------------
+    moved = np.empty((n, 2))
+    for i in range(n):
+        dx = (pts[i, 0] - cx) / scale
+        dy = (pts[i, 1] - cy) / scale
+        if motion == 0:
+            mx = params[0]
+            my = params[1]
+        elif motion == 1:
+            mx = dx * params[0] + dy * -params[1] + params[2]
+            my = dx * params[1] + dy * params[0] + params[3]
+        else:
+            mx = dx * params[0] + dy * params[1] + params[4]
+            my = dx * params[2] + dy * params[3] + params[5]
+        moved[i, 0] = pts[i, 0] + mx
+        moved[i, 1] = pts[i, 1] + my
+    if relax > 0:
+        resid = scratch[_S_TMP2]
+        for i in range(n):
+            shift = 0.0
+            for c in range(k):
+                shift += design[i, c] * params[c]
+            resid[i] = offset[i] - shift if inliers[i] != 0 else 0.0
+        for i in range(n):
+            sm = (resid[(i - 1) % n] + 2 * resid[i] + resid[(i + 1) % n]) / 4.0
+            moved[i, 0] = moved[i, 0] + relax * sm * normals[i, 0]
+            moved[i, 1] = moved[i, 1] + relax * sm * normals[i, 1]
+    _kernel_resample(moved, new_pts)
+    # -- size, plausibility, edge width, residual --------------------------------------------
+    c0 = 0.0
+    c1 = 0.0
+    for i in range(n):
+        c0 += new_pts[i, 0]
+        c1 += new_pts[i, 1]
+    c0 /= n
+    c1 /= n
+    ss = 0.0
+    ok = True
+    for i in range(n):
+        dx = new_pts[i, 0] - c0
+        dy = new_pts[i, 1] - c1
+        ss += dx * dx + dy * dy
+        x = new_pts[i, 0]
+        y = new_pts[i, 1]
+        if x < 0 or y < 0 or x >= width or y >= height:
+            ok = False
+    r = math.sqrt(ss / n)
+    ok = ok and cfg[3] <= r <= cfg[4]
+    n_w = 0
+    for i in range(n):
+        if inliers[i] != 0 and math.isfinite(width2[i]):
+            tmp[n_w] = width2[i]
+            n_w += 1
+    edge_sigma2 = _kernel_median(tmp[:n_w]) if n_w >= 8 else np.nan
+    if cfg[5] != 0 and math.isfinite(edge_sigma2) and r > 0:
+        r += edge_sigma2 / (2.0 * r)
+    rss = 0.0
+    for i in range(n):
+        if inliers[i] != 0:
+            rss += res[i] * res[i]
+            peaks[i] = peak[i]
+        else:
+            peaks[i] = np.nan
+    out[_O_OK] = 1.0 if ok else 0.0
+    out[_O_R] = r
+    out[_O_CX] = c0
+    out[_O_CY] = c1
+    out[_O_RMS] = math.sqrt(rss / n_in)
+    out[_O_EDGE_SIGMA2] = edge_sigma2
