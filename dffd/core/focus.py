@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -62,16 +63,22 @@ def focus_cost(
     Trimmed mean over the valid normals (``trim_fraction`` dropped at each end); σ_g is the
     standard error of that mean carried through the inverse.
     """
-    vals = np.sort(peak_sq[np.isfinite(peak_sq)])
+    # One reduction per statistic on the kept values (this runs on every burst and tracking
+    # frame): the same sums as ndarray.mean / .std(ddof=1), without their per-call overhead.
+    vals = peak_sq[np.isfinite(peak_sq)]
     n = len(vals)
     if n < 8:
         return None
+    vals.sort()
     cut = int(trim_fraction * n)
     kept = vals[cut : n - cut] if n - 2 * cut >= 4 else vals
-    mean = float(kept.mean())
+    k = len(kept)
+    mean = float(np.add.reduce(kept)) / k
     if mean <= 0:
         return None
-    se = float(kept.std(ddof=1)) / math.sqrt(len(kept))
+    dev = kept - mean
+    dev *= dev
+    se = math.sqrt(float(np.add.reduce(dev)) / (k - 1)) / math.sqrt(k)
     g = 1.0 / mean
     return g, g * se / mean
 
@@ -85,31 +92,22 @@ def fit_burst(
 ) -> BurstFit:
     """Fit the cost parabola to a burst; closed form for three settings, WLS for more."""
     cfg = config if config is not None else FitConfig()
-    v = np.asarray(v_mm, dtype=np.float64)
-    y = np.asarray(g, dtype=np.float64)
-    s = np.maximum(np.asarray(sigma_g, dtype=np.float64), 1e-12 * np.abs(y).max(initial=1.0))
-    if len(np.unique(np.round(v, 9))) < 3:
+    # A burst has three settings: the parabola through them in closed form on plain floats
+    # (NumPy's per-call overhead — lstsq, inv, unique: ~50 µs a fit, three fits a burst —
+    # dwarfs the arithmetic). More settings: weighted least squares.
+    if len(v_mm) == 3 and len(g) == 3 and len(sigma_g) == 3:
+        fitted = _fit3(v_mm, g, sigma_g)
+    else:
+        fitted = _fit_wls(v_mm, g, sigma_g)
+    if fitted is None:
         return _rejected("fewer than three distinct focus settings")
-    lo, hi = float(v.min()), float(v.max())
-    mid, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    x = (v - mid) / h
-    design = np.column_stack([x * x, x, np.ones_like(x)])
-    w = 1.0 / s
-    a = design * w[:, None]
-    coef, *_ = np.linalg.lstsq(a, y * w, rcond=None)
-    cov = np.linalg.inv(a.T @ a)
-    res = (y - design @ coef) * w
-    dof = len(y) - 3
-    chi = float(np.sqrt(np.mean(res**2))) if dof > 0 else 0.0
-    if dof > 0:
-        cov = cov * max(1.0, float(res @ res) / dof)
-    a2, a1, a0 = (float(c) for c in coef)
+    mid, h, a2, a1, a0, chi, dof, c00, c01, c11 = fitted
     alpha = a2 / (h * h)
     if a2 <= 0:
         return _rejected("alpha <= 0: the cost has no minimum in the bracket", alpha=alpha)
     xv = -a1 / (2 * a2)
-    grad = np.array([a1 / (2 * a2 * a2), -1 / (2 * a2), 0.0])
-    sigma_x = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+    g0, g1 = a1 / (2 * a2 * a2), -1 / (2 * a2)  # ∂xv/∂(a2, a1)
+    sigma_x = math.sqrt(max(g0 * g0 * c00 + 2.0 * g0 * g1 * c01 + g1 * g1 * c11, 0.0))
     v_hat = mid + h * xv
     sigma_v = h * sigma_x
     c_min = a0 - a1 * a1 / (4 * a2)
@@ -176,6 +174,76 @@ def plan_burst(
     if abs(current_counts - hi_c) < abs(current_counts - lo_c):
         counts.reverse()
     return counts[0], counts[1], counts[2]
+
+
+class _Fitted(NamedTuple):
+    """Parabola a2 x² + a1 x + a0 in x = (v − mid)/h; cov(a2, a1) = [[c00, c01], [c01, c11]]."""
+
+    mid: float
+    h: float
+    a2: float
+    a1: float
+    a0: float
+    chi: float
+    dof: int
+    c00: float
+    c01: float
+    c11: float
+
+
+def _fit3(v_mm: Sequence[float], g: Sequence[float], sigma_g: Sequence[float]) -> _Fitted | None:
+    """Parabola through three settings (Lagrange form) and its coefficient covariance."""
+    v0, v1, v2 = float(v_mm[0]), float(v_mm[1]), float(v_mm[2])
+    y0, y1, y2 = float(g[0]), float(g[1]), float(g[2])
+    floor = 1e-12 * max(1.0, abs(y0), abs(y1), abs(y2))
+    s0, s1, s2 = (max(float(a), floor) for a in sigma_g)
+    if len({_round9(v0), _round9(v1), _round9(v2)}) < 3:
+        return None
+    lo, hi = min(v0, v1, v2), max(v0, v1, v2)
+    mid, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    x0, x1, x2 = (v0 - mid) / h, (v1 - mid) / h, (v2 - mid) / h
+    # rows of the inverse of the design [x², x, 1]: c = B y
+    d0, d1, d2 = (x0 - x1) * (x0 - x2), (x1 - x0) * (x1 - x2), (x2 - x0) * (x2 - x1)
+    b00, b01, b02 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+    b10, b11, b12 = -(x1 + x2) / d0, -(x0 + x2) / d1, -(x0 + x1) / d2
+    a2 = b00 * y0 + b01 * y1 + b02 * y2
+    a1 = b10 * y0 + b11 * y1 + b12 * y2
+    a0 = x1 * x2 / d0 * y0 + x0 * x2 / d1 * y1 + x0 * x1 / d2 * y2
+    q0, q1, q2 = s0 * s0, s1 * s1, s2 * s2
+    c00 = b00 * b00 * q0 + b01 * b01 * q1 + b02 * b02 * q2
+    c01 = b00 * b10 * q0 + b01 * b11 * q1 + b02 * b12 * q2
+    c11 = b10 * b10 * q0 + b11 * b11 * q1 + b12 * b12 * q2
+    return _Fitted(mid, h, a2, a1, a0, 0.0, 0, c00, c01, c11)
+
+
+def _fit_wls(v_mm: Sequence[float], g: Sequence[float], sigma_g: Sequence[float]) -> _Fitted | None:
+    """Weighted least squares of (x², x, 1) for more than three settings."""
+    v = np.asarray(v_mm, dtype=np.float64)
+    y = np.asarray(g, dtype=np.float64)
+    s = np.maximum(np.asarray(sigma_g, dtype=np.float64), 1e-12 * np.abs(y).max(initial=1.0))
+    if len(np.unique(np.round(v, 9))) < 3:
+        return None
+    lo, hi = float(v.min()), float(v.max())
+    mid, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    x = (v - mid) / h
+    design = np.column_stack([x * x, x, np.ones_like(x)])
+    w = 1.0 / s
+    a = design * w[:, None]
+    coef, *_ = np.linalg.lstsq(a, y * w, rcond=None)
+    cov = np.linalg.inv(a.T @ a)
+    res = (y - design @ coef) * w
+    dof = len(y) - 3
+    chi = float(np.sqrt(np.mean(res**2))) if dof > 0 else 0.0
+    if dof > 0:
+        cov = cov * max(1.0, float(res @ res) / dof)
+    a2, a1, a0 = (float(c) for c in coef)
+    c00, c01, c11 = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    return _Fitted(mid, h, a2, a1, a0, chi, dof, c00, c01, c11)
+
+
+def _round9(x: float) -> float:
+    """``np.round(x, 9)`` on a float (NaN/inf pass through)."""
+    return round(x * 1e9) / 1e9 if math.isfinite(x) else x
 
 
 def _rejected(
