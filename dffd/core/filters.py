@@ -9,6 +9,7 @@ are derived in ``docs/estimation.md``.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -18,6 +19,9 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 
 _SMALL = 1e-9
+# Memoised exp(M dt): per tracking frame the three axes of each velocity estimator and CF2's two
+# inputs step with the same (M, dt), so most evaluations repeat one just made; a few entries do.
+_EXPM_CACHE = 16
 
 
 Mat2 = tuple[float, float, float, float]  # row-major 2×2
@@ -66,11 +70,11 @@ class Differentiator:
             raise ValueError("differentiator bandwidth must be > 0")
         self._m: Mat2 = (0.0, 1.0, -omega * omega, -2.0 * zeta * omega)
         self._b = omega * omega
-        self._x: FloatArray | None = None
+        self._x: Vec2 | None = None
 
     def reset(self, value: float) -> None:
         """Start at rest at ``value``."""
-        self._x = np.array([value, 0.0])
+        self._x = (float(value), 0.0)
 
     def update(self, value: float, dt: float) -> tuple[float, float]:
         """Feed a new sample held over the last ``dt``; return (filtered value, derivative)."""
@@ -79,7 +83,11 @@ class Differentiator:
             return value, 0.0
         if dt > 0:
             phi, gam = _zoh2(self._m, (0.0, self._b * value), dt)
-            self._x = _step2(phi, self._x, gam)
+            x0, x1 = self._x
+            self._x = (
+                phi[0] * x0 + phi[1] * x1 + gam[0],
+                phi[2] * x0 + phi[3] * x1 + gam[1],
+            )
         return float(self._x[0]), float(self._x[1])
 
 
@@ -306,13 +314,23 @@ class DepthKF:
         if self.x is None:
             self.reset(y, sigma_y)
             return 0.0
-        s = float(self.p[0, 0]) + sigma_y**2
-        k = self.p[:, 0] / s
-        innov = y - float(self.x[0])
-        self.x = self.x + k * innov
-        # Joseph form keeps P symmetric positive definite
-        ikc = np.eye(2) - np.outer(k, [1.0, 0.0])
-        self.p = ikc @ self.p @ ikc.T + np.outer(k, k) * sigma_y**2
+        x0, x1 = float(self.x[0]), float(self.x[1])
+        p00, p01, p10, p11 = _mat(self.p)
+        r = sigma_y**2
+        s = p00 + r
+        k0, k1 = p00 / s, p10 / s
+        innov = y - x0
+        self.x = np.array([x0 + k0 * innov, x1 + k1 * innov])
+        # Joseph form keeps P symmetric positive definite: (I − K C) P (I − K C)ᵀ + K R Kᵀ with
+        # C = [1, 0], written out on floats (a 2×2 per measurement)
+        a00, a01 = (1.0 - k0) * p00, (1.0 - k0) * p01
+        a10, a11 = p10 - k1 * p00, p11 - k1 * p01
+        self.p = np.array(
+            [
+                [a00 * (1.0 - k0) + k0 * k0 * r, a01 - a00 * k1 + k0 * k1 * r],
+                [a10 * (1.0 - k0) + k1 * k0 * r, a11 - a10 * k1 + k1 * k1 * r],
+            ]
+        )
         return innov
 
 
@@ -324,6 +342,7 @@ def _mat(a: FloatArray) -> Mat2:
     return float(a[0, 0]), float(a[0, 1]), float(a[1, 0]), float(a[1, 1])
 
 
+@functools.lru_cache(maxsize=_EXPM_CACHE)
 def _expm2(a: Mat2) -> Mat2:
     a00, a01, a10, a11 = a
     s = 0.5 * (a00 + a11)

@@ -50,8 +50,17 @@ def world_rotation(pan_deg: float, tilt_deg: float) -> FloatArray:
 
 def to_world(point_cam: Vec3, pan_deg: float, tilt_deg: float) -> Vec3:
     """Camera-frame point to the world frame."""
-    v = world_rotation(pan_deg, tilt_deg) @ np.asarray(point_cam, dtype=np.float64)
-    return float(v[0]), float(v[1]), float(v[2])
+    # world_rotation() written out on floats (once per tracking frame; NumPy's per-call
+    # overhead on a 3×3 is most of the cost): R_pan @ R_tilt =
+    # [[cp, sp st, sp ct], [0, ct, −st], [−sp, cp st, cp ct]]
+    p, t = math.radians(pan_deg), math.radians(tilt_deg)
+    cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
+    x, y, z = point_cam
+    return (
+        cp * x + sp * st * y + sp * ct * z,
+        ct * y - st * z,
+        -sp * x + cp * st * y + cp * ct * z,
+    )
 
 
 class VelocityEstimator:

@@ -54,6 +54,9 @@ TrackState = Literal["acquiring", "tracking", "lost"]
 EstimatorName = Literal["measured", "cf1", "cf2", "lpv", "kf"]
 ESTIMATORS: tuple[EstimatorName, ...] = ("measured", "cf1", "cf2", "lpv", "kf")
 Vec3 = tuple[float, float, float]
+# Memoised focus settings (lens table look-ups): the counts of a session span a few thousand
+# values at most; the cache is emptied when it reaches this size.
+V_CACHE_ENTRIES = 4096
 
 
 @dataclass(frozen=True, slots=True)
@@ -232,6 +235,7 @@ class Pipeline:
         self._known_size = config.known_size_m
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
         self._frames_since_search = 0
+        self._v_cache: dict[int, float] = {}  # focus counts -> v (mm), see _v_from_counts
         # Bursts not emitted (fewer than three frames), by reason.
         self.burst_rejections: Counter[str] = Counter()
         self._reset_estimators()
@@ -409,7 +413,7 @@ class Pipeline:
         cost = focus_cost(obs.peak_sq, self._tracker.config.trim_fraction)
         if cost is None:
             return None
-        v = self.lens.v_from_counts(counts)
+        v = self._v_from_counts(counts)
         return _BurstSample(frame.index, frame.t, counts, v, cost[0], cost[1])
 
     def _discard_burst(self) -> None:
@@ -430,7 +434,10 @@ class Pipeline:
             self.burst_rejections[reason] += 1
             logger.debug("burst %d rejected: %s", bid, reason)
             return None
-        t_mid = float(np.mean([s.t for s in samples]))
+        t_sum = 0.0
+        for s in samples:  # sequential sum (as np.mean of a few values), no array
+            t_sum += s.t
+        t_mid = t_sum / len(samples)
         v = [s.v_mm for s in samples]
         g = [s.g for s in samples]
         sg = [s.sigma_g for s in samples]
@@ -483,7 +490,17 @@ class Pipeline:
     def _image_distance_mm(self, counts: int) -> float:
         if self.config.magnification == "pinhole":
             return self.lens.focal_length_mm
-        return self.lens.v_from_counts(counts)
+        return self._v_from_counts(counts)
+
+    def _v_from_counts(self, counts: int) -> float:
+        """``lens.v_from_counts``, memoised: a PCHIP evaluation costs ~20 µs, and the scheduler
+        returns to the same few focus settings frame after frame."""
+        v = self._v_cache.get(counts)
+        if v is None:
+            if len(self._v_cache) >= V_CACHE_ENTRIES:
+                self._v_cache.clear()
+            v = self._v_cache[counts] = self.lens.v_from_counts(counts)
+        return v
 
     def _depth(self, name: EstimatorName) -> float | None:
         if not self._initialised:
