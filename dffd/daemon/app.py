@@ -117,6 +117,10 @@ STATUS_PERIOD_S = 1.0
 # Window over which achieved rates are computed.
 RATE_WINDOW_S = 5.0
 # The scheduler task sleeps at most this long without an event (guards against a lost wake-up).
+# Shortest wait when the scheduler asks to be woken in the past but has nothing to do: far
+# below its timing resolution (one video field, 16.7 ms), so it costs no accuracy, yet it keeps
+# a past wake-up from becoming a busy loop.
+SCHEDULER_MIN_WAIT_S = 0.001
 SCHEDULER_IDLE_S = 0.5
 # Bounded queues (DESIGN §8: no unbounded queue anywhere).
 FRAME_QUEUE_MAX = 4  # estimator input: a few frames of slack at 30 fps, then drop the oldest
@@ -753,7 +757,8 @@ class Daemon:
         assert sched is not None
         while True:
             now = time.monotonic()
-            for action in sched.next_actions(now):
+            actions = sched.next_actions(now)
+            for action in actions:
                 _LOGGER.debug("action at %.4f: %r", now, action)
                 focus = isinstance(action, FocusMove | FocusInquiry)
                 queue = self._focus_q if focus else self._pt_q
@@ -764,11 +769,13 @@ class Daemon:
             wake = sched.next_wakeup()
             delay = SCHEDULER_IDLE_S if wake is None else min(SCHEDULER_IDLE_S, wake - now)
             self._wake.clear()
-            if delay <= 0:
+            if delay <= 0 and actions:
                 # A wake-up already due: yield anyway, or a scheduler that keeps one in the past
                 # would starve the loop (and the Completion it may be waiting for).
                 await asyncio.sleep(0)
                 continue
+            # A due wake-up that produced nothing would otherwise spin: wait at least a little.
+            delay = max(delay, SCHEDULER_MIN_WAIT_S)
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(delay):
                     await self._wake.wait()
@@ -890,9 +897,12 @@ class Daemon:
                 _LOGGER.info("ready: camera initialised and frames flowing")
             if flowing:
                 self.notifier.watchdog()
-            status = self.status_payload(now)
-            publisher.publish(status)
-            self.console.update(self._snapshot(now, status))
+            # A status that cannot be built must not end the status task (and with it the
+            # watchdog pings): skip that period, counted like any other unpublishable payload.
+            status = self._payload_or_none(self.status_payload, now)
+            if status is not None:
+                publisher.publish(status)
+                self.console.update(self._snapshot(now, status))
             await asyncio.sleep(STATUS_PERIOD_S)
 
     # -- commands ------------------------------------------------------------------------------
@@ -1048,7 +1058,7 @@ class Daemon:
                 frame_hz=self.frames.rate(now),
                 estimate_hz=self.estimates.rate(now),
                 depth_hz=self.measurements.rate(now),
-                depth_limit_hz=limit,
+                depth_limit_hz=_nonneg(limit),
             ),
             link=self._link_health(now),
             mqtt=publisher.health(),
