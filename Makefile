@@ -36,12 +36,13 @@ $(STAMP): pyproject.toml
 # mosquitto (a real broker for the MQTT tests) and systemd-analyze (unit verification) come
 # from Debian; install them only when missing.
 system-deps:
-	@if ! command -v mosquitto >/dev/null 2>&1 && ! test -x /usr/sbin/mosquitto \
-	   || ! command -v systemd-analyze >/dev/null 2>&1; then \
+	@if ! command -v mosquitto_sub >/dev/null 2>&1 && ! test -x /usr/sbin/mosquitto \
+	   || ! command -v systemd-analyze >/dev/null 2>&1 \
+	   || ! command -v chromedriver >/dev/null 2>&1; then \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -qq && \
 	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends \
-	    mosquitto systemd openssl; \
+	    mosquitto mosquitto-clients systemd openssl chromium chromium-driver; \
 	fi
 
 clean:
