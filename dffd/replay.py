@@ -1,9 +1,10 @@
-"""``dffd replay RUN --out EST.jsonl [--summary S.json] [--plot P.png]`` (DESIGN §7).
+"""``dffd replay RUN --out EST.jsonl [--config FILE] [--summary S.json] [--plot P.png]``.
 
-Runs the estimation core on a recording: one JSON line per tracking frame; with ``truth.csv``,
-an error table per estimator (bias, std, RMS, steady-state std after the settling time, p95 of
-|error|, in metres) is printed and written, and a plot of truth, ``z_m``, every estimator and the
-errors can be drawn.
+Runs the estimation core, configured from the service config exactly as the daemon configures
+it (:mod:`dffd.wiring`), on a recording (docs/design.md, recording format): one JSON line per
+tracking frame; with ``truth.csv``, an error table per estimator (bias, std, RMS, steady-state
+std after the settling time, p95 of |error|, in metres) is printed and written, and a plot of
+truth, ``z_m``, every estimator and the errors can be drawn.
 """
 
 from __future__ import annotations
@@ -20,9 +21,11 @@ from typing import Any
 
 import numpy as np
 
+from dffd.config import ConfigError, load_config
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import ESTIMATORS, Estimate, Pipeline, PipelineConfig
 from dffd.recording import RecordingError, RecordingReader, Truth
+from dffd.wiring import pipeline_config
 
 logger = logging.getLogger(__name__)
 
@@ -36,6 +39,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``dffd replay``."""
     parser.add_argument("run", type=Path, help="recording directory (meta.json, frames.csv, …)")
     parser.add_argument("--out", type=Path, required=True, help="estimates, one JSON per line")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="service config TOML whose [estimators]/[target] configure the core "
+        "(default: the built-in default configuration, as dffd run)",
+    )
     parser.add_argument("--summary", type=Path, help="write the error summary (needs truth.csv)")
     parser.add_argument("--plot", type=Path, help="write a PNG plot of depths and errors")
     parser.add_argument(
@@ -49,10 +60,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         metavar="M",
-        help="target size in metres (enables CF1)",
+        help="target size in metres (enables CF1; default: [target] known_size_m)",
     )
     parser.add_argument(
-        "--best", choices=ESTIMATORS, default=None, help="estimator reported as best (default lpv)"
+        "--best",
+        choices=ESTIMATORS,
+        default=None,
+        help="estimator reported as best (default: [estimators] best)",
     )
     parser.add_argument(
         "--roi",
@@ -76,12 +90,17 @@ def run(args: argparse.Namespace) -> int:
         print("dffd replay: --known-size must be > 0", file=sys.stderr)
         return EXIT_USAGE
     try:
+        settings = load_config(args.config)
+    except ConfigError as exc:
+        print(f"dffd replay: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
         reader = RecordingReader(args.run)
         lens = Lens.from_meta(reader.meta["lens"], source=f"{args.run}/meta.json lens")
     except (RecordingError, LensError) as exc:
         print(f"dffd replay: {exc}", file=sys.stderr)
         return EXIT_FAILURE
-    config = PipelineConfig()
+    config = pipeline_config(settings)
     if args.known_size is not None:
         config = replace(config, known_size_m=args.known_size)
     if args.best is not None:

@@ -83,12 +83,9 @@ import itertools
 import math
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 from dffd.core.types import FrameTag
-
-if TYPE_CHECKING:
-    from dffd.config import DffdConfig
 
 # -- VISCA link facts (DESIGN §5) -------------------------------------------------------------
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
@@ -271,57 +268,6 @@ class SchedulerConfig:
         edge."""
         half = min(self.frame_size) / 4.0
         return pixel_offset_to_deg(half, self.focal_length_mm, self.pixel_pitch_mm)
-
-
-def config_from_settings(
-    settings: DffdConfig,
-    *,
-    fps: float,
-    exposure_s: float | None,
-    focus_speed_counts_per_s: float,
-    focal_length_mm: float,
-    pixel_pitch_mm: float,
-    frame_size: tuple[int, int],
-    baudrate: int | None = None,
-) -> SchedulerConfig:
-    """The scheduler configuration from ``[scheduler]``/``[capture]``/``[camera]`` and the facts
-    of the running camera (its frame rate, exposure, focus speed, lens and frame size).
-
-    The one place that maps the settings: the daemon and the bench's lock-step runs both call it,
-    so they cannot diverge. ``baudrate`` defaults to ``[camera] baudrate``.
-    """
-    sc = settings.scheduler
-    sigma_policy = sc.burst_policy == "sigma"
-    exposure = None if exposure_s is None else min(exposure_s, 1.0 / fps)
-    return SchedulerConfig(
-        fps=fps,
-        exposure_s=exposure,
-        capture_latency_frames=math.ceil(settings.capture.latency_frames),
-        timing_margin_s=sc.timing_margin_s,
-        burst_mode=sc.burst_mode,
-        # sigma policy: a burst when σ of ẑ exceeds the threshold, and otherwise only after
-        # sigma_max_interval_frames (so a filter that under-reports σ cannot starve it).
-        burst_every_frames=sc.sigma_max_interval_frames if sigma_policy else (
-            sc.burst_every_n_frames
-        ),
-        sigma_trigger_m=sc.sigma_threshold_m if sigma_policy else None,
-        focus_speed_counts_per_s=focus_speed_counts_per_s,
-        baudrate=settings.camera.baudrate if baudrate is None else baudrate,
-        focal_length_mm=focal_length_mm,
-        pixel_pitch_mm=pixel_pitch_mm,
-        frame_size=frame_size,
-        pan_tilt_mode=sc.pan_tilt_mode,
-        pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
-        pan_tilt_feedforward=sc.pan_tilt_feedforward,
-        pan_tilt_lost_s=sc.pan_tilt_lost_s,
-        pan_tilt_search_s=sc.pan_tilt_search_s,
-        acquire_stable_frames=sc.acquire_stable_frames,
-        pan_tilt_deadband_deg=pixel_offset_to_deg(
-            sc.pan_tilt_deadband_px, focal_length_mm, pixel_pitch_mm
-        ),
-        pan_tilt_max_correction_deg_s=sc.pan_tilt_max_correction_deg_s,
-        pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
-    )  # fmt: skip
 
 
 # -- actions ----------------------------------------------------------------------------------

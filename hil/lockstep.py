@@ -43,9 +43,10 @@ from dffd.scheduler import (
     FocusMove,
     Scheduler,
     SchedulerConfig,
-    config_from_settings,
     depth_rate_limit,
 )
+from dffd.wiring import pipeline_config as service_pipeline_config
+from dffd.wiring import scheduler_config as service_scheduler_config
 from drivers.frames import Frame
 from drivers.sim.device import ViscaDevice
 from drivers.sim.source import FrameTruth
@@ -124,7 +125,7 @@ def scheduler_config(
     The simulated camera supplies what the daemon reads off the real one: frame rate, exposure,
     focus speed, frame size and the link's baud rate.
     """
-    base = config_from_settings(
+    base = service_scheduler_config(
         config,
         fps=session.fps,
         exposure_s=session.exposure_s,
@@ -139,15 +140,9 @@ def scheduler_config(
 
 def pipeline_config(scenario: Scenario, config: DffdConfig) -> PipelineConfig:
     """The estimator configuration as the daemon builds it; the scenario's known size for CF1."""
-    est = config.estimators
-    base = PipelineConfig(
-        best=est.best,
+    base = dataclasses.replace(
+        service_pipeline_config(config),
         known_size_m=scenario.target.known_size_m,
-        cf2_sigma_psi=est.sigma_psi,
-        cf2_sigma_beta=est.sigma_beta,
-        cf2_sigma_z=est.sigma_z,
-        rho_min=est.lpv_rho_min_per_s,
-        rho_max=est.lpv_rho_max_per_s,
         settle_s=scenario.settle_s,
     )
     if not scenario.estimator:

@@ -182,31 +182,6 @@ def test_a_core_output_that_does_not_fit_the_schema_is_skipped_not_fatal() -> No
     assert daemon.payloads_skipped == 2
 
 
-def test_scheduler_config_follows_the_scheduler_section() -> None:
-    """sigma policy: bursts on σ growth (cadence only as a fallback); the other new keys pass."""
-    from types import SimpleNamespace
-
-    from dffd.config import load_config
-    from dffd.core.lens import Lens
-    from dffd.daemon.app import Daemon
-
-    cfg = load_config(None)
-    lens = Lens.from_toml(cfg.lens.file)
-    source = SimpleNamespace(fps=30.0, frame_size=(640, 480))
-    every = Daemon(cfg)._scheduler_config(lens, source, 0.004, 20000.0)  # type: ignore[arg-type]
-    assert (every.burst_every_frames, every.sigma_trigger_m) == (2, None)
-    assert every.burst_mode == "rolling"
-    assert (every.pan_tilt_mode, every.pan_tilt_feedforward, every.timing_margin_s) == (
-        "drive", True, 0.003,
-    )  # fmt: skip
-    assert (every.acquire_stable_frames, every.pan_tilt_search_s) == (3, 2.0)
-    cfg.scheduler.burst_policy = "sigma"
-    cfg.scheduler.pan_tilt_mode = "absolute"
-    sigma = Daemon(cfg)._scheduler_config(lens, source, 0.004, 20000.0)  # type: ignore[arg-type]
-    assert (sigma.burst_every_frames, sigma.sigma_trigger_m) == (90, 0.05)
-    assert sigma.pan_tilt_mode == "absolute"
-
-
 async def test_a_core_command_the_busy_estimator_cannot_apply_is_rejected_with_advice(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -94,3 +94,20 @@ def test_replay_errors_and_exit_codes(
     with pytest.raises(SystemExit) as exc:
         main(["replay", str(run_dir)])  # --out missing: argparse usage error
     assert exc.value.code == 2
+
+
+def test_replay_config_configures_the_core(run_dir: Path, tmp_path: Path) -> None:
+    conf = tmp_path / "dffd.toml"
+    conf.write_text('[estimators]\nbest = "cf2"\n', "utf-8")
+    out = tmp_path / "est.jsonl"
+    assert main(["replay", str(run_dir), "--out", str(out), "--config", str(conf)]) == 0
+    lines = [json.loads(x) for x in out.read_text().splitlines()]
+    assert lines
+    assert all(ln["best"] == "cf2" for ln in lines)
+
+
+def test_replay_reports_a_bad_config(run_dir: Path, tmp_path: Path) -> None:
+    conf = tmp_path / "dffd.toml"
+    conf.write_text("[estimators]\nsigma_psi = -1\n", "utf-8")
+    code = main(["replay", str(run_dir), "--out", str(tmp_path / "e.jsonl"), "--config", str(conf)])
+    assert code == 2

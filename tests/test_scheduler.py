@@ -765,45 +765,6 @@ def test_rolling_plan_survives_transit_frames_and_end_uses_the_latest_plan() -> 
     assert h.wrong == []
 
 
-def test_daemon_and_bench_build_the_scheduler_config_with_one_function() -> None:
-    from types import SimpleNamespace
-
-    from dffd.config import DffdConfig
-    from dffd.daemon.app import Daemon
-    from dffd.scheduler import config_from_settings
-
-    cfg = DffdConfig.model_validate(
-        {
-            "scheduler": {
-                "burst_mode": "classic",
-                "acquire_stable_frames": 7,
-                "pan_tilt_mode": "absolute",
-                "pan_tilt_feedforward": False,
-                "pan_tilt_lost_s": 1.5,
-                "pan_tilt_search_s": 0.5,
-                "timing_margin_s": 0.002,
-                "burst_policy": "sigma",
-                "sigma_max_interval_frames": 40,
-            }
-        }
-    )
-    lens = SimpleNamespace(focal_length_mm=4.0, pixel_pitch_mm=0.006)
-    source = SimpleNamespace(fps=25.0, frame_size=(320, 240))
-    daemon = Daemon(cfg)._scheduler_config(lens, source, 0.004, 15000.0)  # type: ignore[arg-type]
-    shared = config_from_settings(
-        cfg, fps=25.0, exposure_s=0.004, focus_speed_counts_per_s=15000.0,
-        focal_length_mm=4.0, pixel_pitch_mm=0.006, frame_size=(320, 240),
-    )  # fmt: skip
-    assert daemon == shared
-    assert shared.burst_mode == "classic"
-    assert shared.acquire_stable_frames == 7
-    assert shared.pan_tilt_mode == "absolute"
-    assert not shared.pan_tilt_feedforward
-    assert (shared.pan_tilt_lost_s, shared.pan_tilt_search_s) == (1.5, 0.5)
-    assert shared.timing_margin_s == 0.002
-    assert shared.burst_every_frames == 40
-
-
 # -- closed loop: a modelled head and a target at a constant angular velocity ------------------
 FIELD_S = 1.0 / 60.0
 TELE = replace(

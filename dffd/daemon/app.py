@@ -67,7 +67,7 @@ from dffd.config import REPO_ROOT, ConfigError, DffdConfig, load_config, missing
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
-from dffd.core.pipeline import Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.pipeline import Pipeline, PipelineOutput
 from dffd.core.types import FrameTag
 from dffd.daemon.console import Console, ConsoleSnapshot
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
@@ -85,9 +85,9 @@ from dffd.scheduler import (
     PanTiltStop,
     Scheduler,
     SchedulerConfig,
-    config_from_settings,
     depth_rate_limit,
 )
+from dffd.wiring import pipeline_config, scheduler_config
 from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.visca.camera import Camera, SpeedCode, profile_for
 from drivers.visca.errors import ViscaError
@@ -461,7 +461,15 @@ class Daemon:
                 await self._start_broker(stack)
                 port = await self._start_camera_transport(stack)
                 source, exposure_s, focus_speed = await self._start_source(stack, lens)
-                self._sched_config = self._scheduler_config(lens, source, exposure_s, focus_speed)
+                self._sched_config = scheduler_config(
+                    self.config,
+                    fps=source.fps,
+                    exposure_s=exposure_s,
+                    focus_speed_counts_per_s=focus_speed,
+                    focal_length_mm=lens.focal_length_mm,
+                    pixel_pitch_mm=lens.pixel_pitch_mm,
+                    frame_size=source.frame_size,
+                )
                 self.scheduler = Scheduler(self._sched_config)
                 self.scheduler.set_track_focus(
                     lens.counts_for_depth(cfg.scheduler.initial_focus_depth_m)
@@ -477,7 +485,7 @@ class Daemon:
                     self.topics,
                     on_command=self._on_command,
                 )
-                pipeline = Pipeline(self._pipeline_config(), lens)
+                pipeline = Pipeline(pipeline_config(self.config), lens)
                 if cfg.target.roi is not None:
                     pipeline.acquire_roi(*cfg.target.roi)
                 loop = asyncio.get_running_loop()
@@ -642,32 +650,6 @@ class Daemon:
         profile = profile_for(cfg.camera.model)
         lo, hi = profile.focus_range
         return source, None, (hi - lo) / profile.focus_full_travel_s
-
-    def _scheduler_config(
-        self, lens: Lens, source: FrameSource, exposure_s: float | None, focus_speed: float
-    ) -> SchedulerConfig:
-        # The shared builder (the bench's lock-step runs use it too, so the two cannot diverge).
-        return config_from_settings(
-            self.config,
-            fps=source.fps,
-            exposure_s=exposure_s,
-            focus_speed_counts_per_s=focus_speed,
-            focal_length_mm=lens.focal_length_mm,
-            pixel_pitch_mm=lens.pixel_pitch_mm,
-            frame_size=source.frame_size,
-        )
-
-    def _pipeline_config(self) -> PipelineConfig:
-        est = self.config.estimators
-        return PipelineConfig(
-            best=est.best,
-            known_size_m=self.config.target.known_size_m,
-            cf2_sigma_psi=est.sigma_psi,
-            cf2_sigma_beta=est.sigma_beta,
-            cf2_sigma_z=est.sigma_z,
-            rho_min=est.lpv_rho_min_per_s,
-            rho_max=est.lpv_rho_max_per_s,
-        )
 
     async def _initialize_camera(self, camera: Camera, lens: Lens) -> None:
         try:
