@@ -11,10 +11,6 @@ import numpy.typing as npt
 import pytest
 
 from dffd.core.contour import (
-    HUBER_K_PX,
-    IRLS_ITERATIONS,
-    OUTLIER_PX,
-    RIDGE,
     BoundaryObservation,
     ContourTracker,
     FloatArray,
@@ -25,6 +21,7 @@ from dffd.core.contour import (
     radius_of,
     resample_closed,
 )
+from dffd.core.kernels import HUBER_K_PX, IRLS_ITERATIONS, OUTLIER_PX, RIDGE
 from dffd.core.synthetic import render_disc
 
 W, H = 640, 480
