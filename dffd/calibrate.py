@@ -50,10 +50,11 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from dffd.config import REPO_ROOT, ConfigError, DffdConfig, load_config
+from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import focus_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError
+from drivers.sim.resources import reference_camera_file
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -62,7 +63,6 @@ EXIT_FAILURE = 1
 EXIT_USAGE = 2
 
 DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 10.0, 20.0)
-DEFAULT_SIM_CAMERA_FILE = REPO_ROOT / "config" / "sim-camera.toml"
 COARSE_POINTS = 33  # focus settings of the coarse sweep over the whole range
 FINE_POINTS = 17  # … of the fine sweep around the coarse minimum (± two coarse steps)
 FIT_HALF_WIDTH = 3  # points either side of the minimum used for the vertex fit
@@ -132,8 +132,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument("--sim", action="store_true", help="calibrate the simulated camera")
     parser.add_argument(
-        "--sim-config", type=Path, default=DEFAULT_SIM_CAMERA_FILE, metavar="FILE",
-        help="simulated-camera TOML (default config/sim-camera.toml)",
+        "--sim-config", type=Path, default=None, metavar="FILE",
+        help="simulated-camera TOML (default: the reference camera in drivers/sim/data/)",
     )  # fmt: skip
     parser.add_argument(
         "--depths", default=",".join(str(z) for z in DEFAULT_DEPTHS_M), metavar="Z1,Z2,…",
@@ -168,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
         )
         return EXIT_USAGE
     if args.sim:
-        return asyncio.run(_calibrate_and_report(SimRig(args.sim_config), depths, args))
+        sim_rig = SimRig(args.sim_config or reference_camera_file())
+        return asyncio.run(_calibrate_and_report(sim_rig, depths, args))
     try:
         config = load_config(args.config)
         rig = LabRig(config)
@@ -258,7 +259,7 @@ def lens_from_points(
 
 
 def lens_toml(lens: Lens, zoom_counts: int | None, latency_frames: int) -> str:
-    """The lens calibration file (``config/lenses/*.toml`` format)."""
+    """The lens calibration file (lens TOML format, as ``dffd/defaults/lenses/*.toml``)."""
     rows = "\n".join(
         f"    [{c}, {v:.6f}]," for c, v in zip(lens.focus_counts, lens.focus_v_mm, strict=True)
     )

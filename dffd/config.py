@@ -6,8 +6,11 @@ field has a default and a range, unknown keys are errors, and a bad file produce
 allowed. Environment variables win over the file (``DFFD_MQTT__URL=mqtt://127.0.0.1:18883``).
 
 Relative paths written in a config file are resolved against that file's directory; relative
-paths from the environment against the working directory; the default lens table lives in the
-source tree (``config/lenses/sim-evi-d100.toml``). All paths are absolute after loading.
+paths from the environment against the working directory. ``[lens] file`` may also name a lens
+table shipped in the package (``sim-evi-d100``) and ``[sim] scenario`` a world shipped with the
+simulator (``paper-circle``): see :mod:`dffd.resources` and :mod:`drivers.sim.resources`. All
+paths are absolute after loading. Without a file, the embedded default
+(``dffd/defaults/dffd.toml``, package data) is loaded.
 
 This module is also the ``dffd check-config FILE`` subcommand (exit 0 valid, 2 invalid).
 """
@@ -38,10 +41,17 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
+from dffd.resources import (
+    DEFAULT_LENS,
+    ResourceNotFoundError,
+    default_config_file,
+    is_lens_name,
+    lens_table,
+)
+from drivers.sim.resources import world_file, world_names
+
 __all__ = [
-    "DEFAULT_LENS_FILE",
     "ENV_PREFIX",
-    "REPO_ROOT",
     "CameraConfig",
     "CaptureConfig",
     "ConfigError",
@@ -62,9 +72,6 @@ __all__ = [
 
 ENV_PREFIX = "DFFD_"
 ENV_NESTED_DELIMITER = "__"
-# The source tree (dffd/ is one level below it); holds config/lenses for the default run.
-REPO_ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_LENS_FILE = REPO_ROOT / "config" / "lenses" / "sim-evi-d100.toml"
 
 EXIT_OK = 0
 EXIT_INVALID = 2
@@ -79,9 +86,6 @@ DEFAULT_MQTT_PORT = 1883  # IANA port for MQTT
 DEFAULT_MQTTS_PORT = 8883  # IANA port for MQTT over TLS
 EMBEDDED_HOST = "127.0.0.1"  # the embedded broker never listens beyond loopback
 
-SCENARIO_NAMES = ("static", "approach", "paper-circle", "figure-eight", "random")
-# Named scenarios are read (never imported: dffd does not depend on hil) from the source tree.
-SCENARIO_DIR = REPO_ROOT / "hil" / "scenarios"
 EstimatorName = Literal["lpv", "kf", "cf2", "cf1"]
 BurstPolicy = Literal["every_n", "sigma"]
 BurstMode = Literal["rolling", "classic"]
@@ -180,11 +184,23 @@ class LensConfig(_Section):
     """``[lens]``: the focus calibration table and the fixed zoom it was measured at."""
 
     file: Path = Field(
-        default=DEFAULT_LENS_FILE, description="lens calibration TOML (config/lenses/)"
+        default=Path(DEFAULT_LENS),
+        description="lens calibration TOML, or the name of a packaged table (sim-evi-d100)",
     )
     zoom_counts: Annotated[int, Field(ge=0, le=0x4000)] | None = Field(
         default=None, description="VISCA zoom position; default: the calibration file's zoom_counts"
     )
+
+    @field_validator("file")
+    @classmethod
+    def _packaged_table(cls, value: Path) -> Path:
+        """A packaged table's name becomes its path; paths are resolved by load_config."""
+        if not is_lens_name(value):
+            return value
+        try:
+            return lens_table(str(value))
+        except ResourceNotFoundError as exc:
+            raise _value_error(str(exc)) from None
 
 
 class SchedulerConfig(_Section):
@@ -424,9 +440,9 @@ class SimConfig(_Section):
 
     scenario: str = Field(
         default="paper-circle",
-        description="a scenario name (static, approach, paper-circle, figure-eight, random: "
-        "hil/scenarios/<name>.toml of this source tree) or the path of a TOML file with "
-        "[target] and [trajectory] tables",
+        description="a simulated world shipped with the simulator (static, approach, "
+        "paper-circle, figure-eight, random: drivers/sim/data/worlds/) or the path of a TOML "
+        "file with [target] and [trajectory] tables",
     )
     start_phase_deg: Annotated[float, Field(ge=-360, le=360)] | None = Field(
         default=180.0,
@@ -444,18 +460,18 @@ class SimConfig(_Section):
     @field_validator("scenario")
     @classmethod
     def _scenario_form(cls, value: str) -> str:
-        if value in SCENARIO_NAMES or value.endswith(".toml"):
+        if value in world_names() or value.endswith(".toml"):
             return value
         raise _value_error(
-            f"{value!r} is neither a scenario name ({', '.join(SCENARIO_NAMES)}) nor the path of "
-            "a .toml scenario file"
+            f"{value!r} is neither a simulated world ({', '.join(world_names())}) nor the path "
+            "of a .toml world file"
         )
 
     @property
     def scenario_file(self) -> Path:
-        """The scenario TOML: a name resolved in hil/scenarios/ of this tree, or the path."""
-        if self.scenario in SCENARIO_NAMES:
-            return SCENARIO_DIR / f"{self.scenario}.toml"
+        """The world TOML: a packaged world's file (drivers/sim/data/worlds/), or the path."""
+        if self.scenario in world_names():
+            return world_file(self.scenario)
         return Path(self.scenario)
 
 
@@ -532,20 +548,18 @@ class DffdConfig(BaseSettings):
 
 
 def load_config(path: Path | None = None) -> DffdConfig:
-    """Load ``path`` (None: the built-in defaults) plus ``DFFD_…`` environment overrides.
+    """Load ``path`` (None: the embedded default) plus ``DFFD_…`` environment overrides.
 
     Raises ConfigError naming every bad field by its dotted path and saying what is allowed.
     """
-    source = str(path) if path is not None else "built-in default configuration"
-    data: dict[str, Any] = {}
-    if path is not None:
-        data = _read_toml(path)
+    source = str(path) if path is not None else "embedded default configuration"
+    file = path if path is not None else default_config_file()
+    data = _read_toml(file)
     try:
         config = DffdConfig(**data)
     except ValidationError as exc:
         raise ConfigError(list(_describe_errors(exc, data)), source) from None
-    base = path.resolve().parent if path is not None else Path.cwd()
-    return _resolve_paths(config, data, base)
+    return _resolve_paths(config, data, file.resolve().parent)
 
 
 def missing_files(config: DffdConfig) -> list[str]:
@@ -622,7 +636,7 @@ def _read_toml(path: Path) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(
-            [f"cannot read {path}: {exc.strerror}; check the path (see config/dffd.toml)"],
+            [f"cannot read {path}: {exc.strerror}; check the path"],
             str(path),
         ) from None
     except UnicodeDecodeError as exc:
@@ -652,7 +666,7 @@ def _resolve_paths(config: DffdConfig, data: Mapping[str, Any], base: Path) -> D
             value = anchor / value
         updates[section] = model.model_copy(update={key: value})
     sim: SimConfig = updates.get("sim") or config.sim  # type: ignore[assignment]
-    if sim.scenario not in SCENARIO_NAMES and not Path(sim.scenario).is_absolute():
+    if sim.scenario not in world_names() and not Path(sim.scenario).is_absolute():
         from_file = isinstance(data.get("sim"), dict) and "scenario" in data["sim"]
         from_env = _env_name("sim", "scenario") in _environ_upper()
         anchor = base if from_file and not from_env else Path.cwd()

@@ -195,7 +195,7 @@ def _report(
         "latency_ms": {"n": len(lat), "p50": pct(0.50), "p99": pct(0.99), "max": pct(1.0)},
         "latency_goal_ms": {"p50": 10.0, "p99": 30.0},
         # The simulated grabber delivers a frame exposure/2 + 1 frame after its mid-exposure
-        # (config/sim-camera.toml); what the daemon itself adds is the rest.
+        # (drivers/sim/data/sim-camera.toml); what the daemon itself adds is the rest.
         "capture_delay_ms": None if delay is None else 1e3 * delay,
         "latency_after_delivery_ms": (
             None
@@ -225,10 +225,9 @@ def _sim_capture_delay_s() -> float | None:
     """Exposure mid → delivery of the reference simulated camera (exposure/2 + latency)."""
     try:
         from drivers.sim.config import load_sim_camera_config
+        from drivers.sim.resources import reference_camera_file
 
-        cfg = load_sim_camera_config(
-            Path(__file__).resolve().parent.parent / "config" / "sim-camera.toml"
-        )
+        cfg = load_sim_camera_config(reference_camera_file())
     except (ImportError, ValueError, OSError):
         return None
     cap = cfg.capture

@@ -1,6 +1,6 @@
 """Render-time benchmark of the simulated camera (issue 3: ≤ 5 ms per 640×480 frame).
 
-    python -m hil.bench_render [--frames N] [--config config/sim-camera.toml] [--out FILE]
+    python -m hil.bench_render [--frames N] [--config SIM_CAMERA.toml] [--out FILE]
 
 Renders the reference camera in lock-step virtual time over cases that span the work the
 renderer does: a small focused target (10 m), a large one (1.5 m), a heavily defocused one
@@ -26,11 +26,11 @@ from drivers.sim.config import (
     WorldConfig,
     load_sim_camera_config,
 )
+from drivers.sim.resources import reference_camera_file
 from drivers.sim.source import SimFrameSource, camera_state_for
 from drivers.sim.state import CameraState
 from drivers.sim.world import World
 
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "sim-camera.toml"
 BUDGET_MS = 5.0  # issue 3
 
 
@@ -119,10 +119,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark; exit 0 when the mean over all cases is within the budget."""
     parser = argparse.ArgumentParser(prog="python -m hil.bench_render", description=__doc__)
     parser.add_argument("--frames", type=int, default=300, help="frames per case (default 300)")
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
+    parser.add_argument("--config", type=Path, default=None)
     parser.add_argument("--out", type=Path, help="write the figures as JSON")
     args = parser.parse_args(argv)
-    config = load_sim_camera_config(args.config)
+    config = load_sim_camera_config(args.config or reference_camera_file())
     results: dict[str, dict[str, float]] = {}
     all_times: list[float] = []
     for name, (world, setup) in CASES.items():

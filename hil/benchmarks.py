@@ -331,10 +331,10 @@ def _daemon_figures(daemon: dict[str, Any], quick: bool) -> list[dict[str, Any]]
 
 
 def _sim_delivery_lag_ms() -> float:
-    from drivers.sim.config import SimCameraConfig, load_sim_camera_config
+    from drivers.sim.config import load_sim_camera_config
+    from drivers.sim.resources import reference_camera_file
 
-    path = REPO_ROOT / "config" / "sim-camera.toml"
-    cfg = load_sim_camera_config(path) if path.exists() else SimCameraConfig()
+    cfg = load_sim_camera_config(reference_camera_file())
     cap = cfg.capture
     return 1e3 * (cap.exposure_s / 2.0 + cap.capture_latency_frames / cap.fps)
 

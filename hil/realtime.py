@@ -308,9 +308,9 @@ def _score(data: _Collected, result: RunResult, scenario: Scenario, truth_csv: P
 
 def _lens_for(scenario: Scenario) -> Any:
     from dffd.core.lens import Lens, LensError
+    from hil.simbuild import lens_file
 
-    path = Path(scenario.camera.lens)
-    path = path if path.is_absolute() else REPO_ROOT / path
+    path = lens_file(scenario.camera.lens)
     try:
         return Lens.from_toml(path)
     except LensError:

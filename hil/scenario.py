@@ -15,6 +15,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from drivers.sim.config import SimConfigError
+from drivers.sim.resources import world_tables
+
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
 SCENARIO_NAMES = ("static", "approach", "paper-circle", "figure-eight", "random")
 
@@ -51,13 +54,15 @@ class TrajectorySpec(_Model):
 
 
 class CameraSpec(_Model):
-    """Simulated-camera parameters the scenario sets on top of ``config/sim-camera.toml``.
+    """Simulated-camera parameters the scenario sets on top of the simulator's camera config.
 
     Unset (None) keeps the camera config's value.
     """
 
-    config: str = "config/sim-camera.toml"  # relative to the repository root
-    lens: str = "config/lenses/sim-evi-d100.toml"  # what the estimator is told (the lens table)
+    # The simulated camera's TOML; None: the reference camera (drivers/sim/data/sim-camera.toml).
+    config: str | None = None
+    # What the estimator is told: a packaged lens table's name (dffd/defaults/lenses/) or a path.
+    lens: str = "sim-evi-d100"
     fps: float | None = Field(None, gt=0.0, le=120.0)
     read_noise_dn: float | None = Field(None, ge=0.0)
     capture_latency_frames: float | None = Field(None, ge=0.0, le=10.0)
@@ -99,6 +104,9 @@ class Scenario(_Model):
     """A validated scenario file."""
 
     name: str
+    # The simulator's world (drivers/sim/data/worlds/<world>.toml) that [target] and [trajectory]
+    # start from; the scenario's own tables override its keys. Resolved by load_scenario.
+    world: str | None = None
     description: str = ""
     duration_s: float = Field(gt=0.0, le=3600.0)  # per case
     settle_s: float = Field(5.0, ge=0.0)  # steady state starts this long after the start
@@ -182,6 +190,14 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         raise ScenarioError(f"scenario file {path} is not valid TOML: {exc}") from exc
     except OSError as exc:
         raise ScenarioError(f"cannot read scenario file {path}: {exc.strerror}") from exc
+    if isinstance(data.get("world"), str):
+        try:
+            world = world_tables(data["world"])
+        except SimConfigError as exc:
+            raise ScenarioError(f"scenario file {path}: world: {exc}") from exc
+        for table in ("target", "trajectory"):
+            own = data.get(table, {})
+            data[table] = world[table] | own if isinstance(own, dict) else own
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from dffd.resources import ResourceNotFoundError, is_lens_name, lens_table
 from drivers.frames import Frame
 from drivers.sim.config import (
     SimCameraConfig,
@@ -25,6 +26,7 @@ from drivers.sim.config import (
 )
 from drivers.sim.device import DeviceConfig
 from drivers.sim.optics import Optics
+from drivers.sim.resources import reference_camera_file
 from drivers.sim.source import FrameTruth, SimFrameSource, camera_state_for
 from drivers.sim.state import CameraState
 from drivers.sim.world import World
@@ -105,12 +107,15 @@ def sim_camera_config(
 ) -> tuple[SimCameraConfig, list[str]]:
     """The simulated-camera config of a session: camera file + scenario parameters + world."""
     notes: list[str] = []
-    path = _resolve(scenario.camera.config)
-    if path.exists():
-        base = load_sim_camera_config(path)
+    if scenario.camera.config is None:
+        base = load_sim_camera_config(reference_camera_file())
     else:
-        base = SimCameraConfig()
-        notes.append(f"{scenario.camera.config} missing: simulator defaults used")
+        path = _resolve(scenario.camera.config)
+        if path.exists():
+            base = load_sim_camera_config(path)
+        else:
+            base = SimCameraConfig()
+            notes.append(f"{scenario.camera.config} missing: simulator defaults used")
     cam = scenario.camera
     overrides: dict[str, Any] = {"seed": seed}
     if cam.fps is not None:
@@ -149,11 +154,21 @@ def build_session(
     device_config = DeviceConfig(
         pace=True, autofocus_at_power_up=False, network_change_at_power_up=False
     )
-    lens_path = _resolve(scenario.camera.lens)
+    lens_path = lens_file(scenario.camera.lens)
     if not lens_path.exists():
         lens_path = _temporary_lens_table(config)
         notes.append(f"{scenario.camera.lens} missing: the simulator's ground-truth table was used")
     return SimSession(config, clock, state, source, world, device_config, lens_path, notes)
+
+
+def lens_file(name_or_path: str) -> Path:
+    """A scenario's lens: a packaged table's name (dffd/defaults/lenses/) or a path."""
+    if is_lens_name(name_or_path):
+        try:
+            return lens_table(name_or_path)
+        except ResourceNotFoundError:
+            return Path(name_or_path)  # reported as missing by the caller
+    return _resolve(name_or_path)
 
 
 def _resolve(path: str) -> Path:

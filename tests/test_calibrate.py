@@ -8,7 +8,6 @@ from pathlib import Path
 import pytest
 
 from dffd.calibrate import (
-    DEFAULT_SIM_CAMERA_FILE,
     CalibrationError,
     DepthPoint,
     LabRig,
@@ -23,8 +22,10 @@ from dffd.calibrate import (
 )
 from dffd.config import load_config
 from dffd.core.lens import Lens
+from dffd.resources import lens_table
+from drivers.sim.resources import reference_camera_file
 
-TRUTH = Lens.from_toml(Path(__file__).resolve().parent.parent / "config/lenses/sim-evi-d100.toml")
+TRUTH = Lens.from_toml(lens_table("sim-evi-d100"))
 # Measured bias of the sweep on the reference simulator: the sharpest counts come out 15–80
 # counts on the far side of the true table (≤ 2% in depth at 10 m). 120 counts bounds it.
 COUNTS_TOL = 120
@@ -48,7 +49,7 @@ def test_non_monotone_points_are_refused() -> None:
 
 
 async def test_sim_sweep_matches_the_ground_truth_and_latency() -> None:
-    rig = SimRig(DEFAULT_SIM_CAMERA_FILE)
+    rig = SimRig(reference_camera_file())
     for z in (1.5, 4.0, 10.0):
         await rig.place_target(z)
         point = await sharpest(rig, z, settle_frames=3)
@@ -67,7 +68,7 @@ async def test_the_procedure_places_the_target_at_each_depth_in_order() -> None:
             placed.append(z_m)
             await super().place_target(z_m)
 
-    points, latency = await calibrate(Recording(DEFAULT_SIM_CAMERA_FILE), [2.0, 6.0])
+    points, latency = await calibrate(Recording(reference_camera_file()), [2.0, 6.0])
     assert placed == [2.0, 6.0]
     assert [p.z_m for p in points] == [2.0, 6.0]
     assert points[0].counts > points[1].counts  # nearer = more counts (towards 0x8400)

@@ -11,16 +11,17 @@ import pytest
 
 from dffd import cli
 from dffd.config import (
-    DEFAULT_LENS_FILE,
-    REPO_ROOT,
     ConfigError,
     DffdConfig,
     MqttConfig,
     load_config,
     missing_files,
 )
+from dffd.resources import default_config_file, lens_table
+from drivers.sim.resources import world_file
 
-CONFIG_DIR = REPO_ROOT / "config"
+# The deployment examples of the source tree (the defaults are package data).
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 
 
 @pytest.fixture(autouse=True)
@@ -66,13 +67,16 @@ def test_defaults_are_the_simulated_embedded_run(tmp_path: Path) -> None:
     assert config.sim.scenario == "paper-circle"
     assert config.estimators.best == "lpv"
     assert config.target.known_size_m is None
-    assert config.lens.file == DEFAULT_LENS_FILE
-    assert config.lens.file.is_file(), "the default lens table ships in config/lenses"
+    assert config.lens.file == lens_table("sim-evi-d100")
+    assert config.lens.file.is_file(), "the default lens table ships in dffd/defaults/lenses"
     assert config.log.dir == tmp_path / "runs" / "log"
 
 
-def test_shipped_default_file_equals_builtin_defaults() -> None:
-    assert load_config(CONFIG_DIR / "dffd.toml") == load_config(None)
+def test_embedded_default_file_equals_the_fields_defaults(tmp_path: Path) -> None:
+    assert default_config_file().parent.name == "defaults"
+    # An empty file gets every field's own default: the embedded file must say the same.
+    assert load_config(write(tmp_path, "")) == load_config(None)
+    assert load_config(default_config_file()) == load_config(None)
 
 
 def test_shipped_lab_file_is_valid_hardware_config() -> None:
@@ -226,7 +230,7 @@ def test_bad_environment_value_names_the_variable(monkeypatch: pytest.MonkeyPatc
         ("[mqtt]\nembedded_port = 0\n", "mqtt.embedded_port: 0 is out of range; allowed: 1 ≤"),
         ('[log]\nlevel = "LOUD"\n', "log.level: 'LOUD' is not allowed; use 'DEBUG', 'INFO'"),
         ("[log]\nmax_bytes = 10\n", "log.max_bytes: 10 is out of range; allowed: 4096 ≤"),
-        ('[sim]\nscenario = "circle"\n', "sim.scenario: 'circle' is neither a scenario name"),
+        ('[sim]\nscenario = "circle"\n', "sim.scenario: 'circle' is neither a simulated world"),
         ('[sim]\nvisca_transport = "in-process"\n', "sim.visca_transport: 'in-process' is not"),
         ("[scheduler]\npan_tilt_ki_per_s2 = 0.1\n", "scheduler.pan_tilt_ki_per_s2: unknown key"),
         ('[sim]\npublish_truth = "maybe"\n', "sim.publish_truth: 'maybe' is not a boolean"),
@@ -278,7 +282,7 @@ def test_missing_files_and_password(tmp_path: Path) -> None:
 
 
 def test_check_config_prints_resolved_toml(capsys: pytest.CaptureFixture[str]) -> None:
-    assert cli.main(["check-config", str(CONFIG_DIR / "dffd.toml")]) == 0
+    assert cli.main(["check-config", str(default_config_file())]) == 0
     out = capsys.readouterr().out
     assert '[mqtt]\nurl = "embedded"' in out
     assert "# known_size_m is unset" in out
@@ -305,11 +309,11 @@ def test_check_config_missing_files(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["check-config", "--check-files", lab]) == 2  # …or errors on request
 
 
-def test_scenario_is_a_name_in_the_tree_or_a_path_next_to_the_file(tmp_path: Path) -> None:
+def test_scenario_is_a_packaged_world_or_a_path_next_to_the_file(tmp_path: Path) -> None:
     default = load_config(None)
-    assert default.sim.scenario_file == REPO_ROOT / "hil" / "scenarios" / "paper-circle.toml"
+    assert default.sim.scenario_file == world_file("paper-circle")
     assert default.sim.scenario_file.is_file()
-    assert default.sim.start_phase_deg == 180.0  # the demo's fair start (config/dffd.toml)
+    assert default.sim.start_phase_deg == 180.0  # the demo's fair start (dffd/defaults/dffd.toml)
     (tmp_path / "sub").mkdir()
     path = write(tmp_path / "sub", '[sim]\nscenario = "mine.toml"\n')
     config = load_config(path)

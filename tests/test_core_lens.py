@@ -8,8 +8,9 @@ import pytest
 
 from dffd.core.lens import Lens, LensError
 from dffd.core.synthetic import synthetic_lens
+from dffd.resources import lens_table
 
-SIM_LENS = Path(__file__).resolve().parents[1] / "config" / "lenses" / "sim-evi-d100.toml"
+SIM_LENS = lens_table("sim-evi-d100")
 
 
 def test_loads_the_simulator_lens_file() -> None:

@@ -9,13 +9,13 @@ from __future__ import annotations
 import asyncio
 import math
 import tomllib
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from scipy.interpolate import PchipInterpolator
 
+from dffd.resources import lens_table
 from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.sim.config import (
     CaptureConfig,
@@ -27,13 +27,13 @@ from drivers.sim.config import (
     with_overrides,
 )
 from drivers.sim.optics import Optics, world_from_camera
+from drivers.sim.resources import reference_camera_file
 from drivers.sim.source import SimFrameSource, camera_state_for
 from drivers.sim.state import CameraState
 from drivers.sim.world import World, boundary_samples, make_shape, make_trajectory, rms_radius
 
-ROOT = Path(__file__).resolve().parent.parent
-SIM_CONFIG = ROOT / "config" / "sim-camera.toml"
-LENS_FILE = ROOT / "config" / "lenses" / "sim-evi-d100.toml"
+SIM_CONFIG = reference_camera_file()
+LENS_FILE = lens_table("sim-evi-d100")
 FRAME_TIMEOUT_S = 5.0  # generous bound on a live frame at 30 fps (3 periods + latency ≈ 0.15 s)
 
 
@@ -470,7 +470,7 @@ def test_lens_file_is_generated_from_the_simulator(reference) -> None:
     optics = Optics.from_config(reference)
     text = LENS_FILE.read_text(encoding="utf-8")
     assert text == optics.lens_table_toml(reference.zoom_counts), (
-        "regenerate: python -m drivers.sim.optics --write config/lenses/sim-evi-d100.toml"
+        "regenerate: python -m drivers.sim.optics --write dffd/defaults/lenses/sim-evi-d100.toml"
     )
     lens = tomllib.loads(text)["lens"]
     assert lens["focal_length_mm"] == optics.focal_length_mm(reference.zoom_counts)

@@ -1,6 +1,6 @@
 """Lens model: focus counts <-> lens-to-sensor distance v (PCHIP) and the thin-lens depth relation.
 
-One model is built either from a calibration file (``config/lenses/*.toml``) or from the ``lens``
+One model is built either from a lens table (``dffd/defaults/lenses/*.toml``) or from the ``lens``
 block of a recording's ``meta.json`` (DESIGN §2, §7). Units: millimetres for the lens, metres for
 depths handed to the rest of the core.
 """

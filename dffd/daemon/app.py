@@ -18,7 +18,7 @@ Without ``--config`` (or with ``camera.driver = "sim"``) the camera is the simul
 device on a real pty (:class:`~drivers.sim.server.SimCameraServer`), its renderer as the frame
 source, ground truth on ``…/sim/truth``; ``mqtt.url = "embedded"`` starts the embedded amqtt
 broker on 127.0.0.1. The world is ``sim.scenario``'s ``[target]`` and ``[trajectory]`` tables (a
-name read from ``hil/scenarios/<name>.toml`` of this tree, or a file path) applied to the
+world shipped in ``drivers/sim/data/worlds/``, or a file path) applied to the
 simulated camera's own config types (``drivers.sim.config``), ``sim.start_phase_deg`` overriding
 the start phase (the default demo starts the circle at its far point). With a config naming a
 serial port, a video device (``[capture]`` → :class:`drivers.capture.OpenCVFrameSource`) and a
@@ -63,7 +63,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ValidationError
 
 from dffd import __version__
-from dffd.config import REPO_ROOT, ConfigError, DffdConfig, load_config, missing_files
+from dffd.config import ConfigError, DffdConfig, load_config, missing_files
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
@@ -134,7 +134,6 @@ ESTIMATOR_JOIN_TIMEOUT_S = 2.0
 CORE_COMMAND_TIMEOUT_S = 2.0
 # Nominal bracket spacing (counts) for the rate limit until the core plans a burst.
 DEFAULT_SPACING_COUNTS = 300
-DEFAULT_SIM_CAMERA_FILE = REPO_ROOT / "config" / "sim-camera.toml"
 # Frames waiting between the capture thread and the loop (drop-oldest beyond): the estimator
 # wants the newest frame; two absorb one slow loop iteration.
 CAPTURE_QUEUE_FRAMES = 2
@@ -604,9 +603,10 @@ class Daemon:
     def _sim_camera_config(self) -> Any:
         """The simulated camera of ``sim.camera_config`` looking at ``sim.scenario``'s world."""
         from drivers.sim.config import SimConfigError, load_sim_camera_config, with_overrides
+        from drivers.sim.resources import reference_camera_file
 
         cfg = self.config
-        path = cfg.sim.camera_config or DEFAULT_SIM_CAMERA_FILE
+        path = cfg.sim.camera_config or reference_camera_file()
         target, trajectory = _scenario_world(cfg.sim.scenario_file)
         trajectory = {**trajectory, "seed": cfg.sim.seed}
         if cfg.sim.start_phase_deg is not None:
@@ -1156,9 +1156,9 @@ def _open_capture(config: DffdConfig) -> FrameSource:
 
 
 def _scenario_world(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The ``[target]`` and ``[trajectory]`` tables of a scenario TOML (hil/scenarios/*.toml).
+    """The ``[target]`` and ``[trajectory]`` tables of a world TOML (drivers/sim/data/worlds/).
 
-    Read as data, never imported: dffd does not depend on hil. The tables are validated by the
+    The tables are validated by the
     simulator's own config types (``drivers.sim.config.WorldConfig``) when applied.
     """
     try:

@@ -1,6 +1,7 @@
 """Typed configuration of the simulated camera and its world, loaded from TOML.
 
-``config/sim-camera.toml`` is the reference camera; every value there carries its source or the
+``drivers/sim/data/sim-camera.toml`` is the reference camera (package data, see
+:mod:`drivers.sim.resources`); every value there carries its source or the
 assumption behind it. Units are in the field names (``_mm``, ``_m``, ``_px``, ``_dn`` = digital
 numbers of the 8-bit output, ``_s``). Coordinates follow DESIGN / ``hil/scenario.py``: the world
 frame is the camera frame at pan = tilt = 0 (OpenCV: x right, y down, z forward, metres) with
@@ -139,7 +140,7 @@ class WorldConfig(_Model):
 
 
 class SimCameraConfig(_Model):
-    """The whole simulated camera (``config/sim-camera.toml``)."""
+    """The whole simulated camera (``drivers/sim/data/sim-camera.toml``)."""
 
     sensor: SensorConfig = SensorConfig()
     lens: LensConfig = LensConfig()

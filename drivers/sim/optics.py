@@ -9,7 +9,7 @@ shared bug must not cancel out):
   ``P`` (dioptres) that is a smooth nonlinear function of the counts; the lens-to-sensor distance
   follows from the thin-lens law ``1/f = 1/z + 1/v``: ``v0 = 1 / (1/f − P)``. So counts ↔ ``v0``
   is monotone and nonlinear; :meth:`Optics.lens_table_toml` writes it as the ground-truth
-  calibration the estimator reads (``config/lenses/sim-evi-d100.toml``).
+  calibration the estimator reads (``dffd/defaults/lenses/sim-evi-d100.toml``).
 * A target at depth ``z`` is sharp at ``v = f z / (z − f)``; at ``v0`` its points spread into a
   blur circle of radius ``b = (D/2)|v0 − v|/v`` on the sensor (similar triangles through the
   aperture). PSF: a uniform disc of radius ``b/p`` pixels (default) or a Gaussian of the same
@@ -38,6 +38,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.sim.config import LensConfig, SensorConfig, SimCameraConfig, load_sim_camera_config
+from drivers.sim.resources import reference_camera_file
 
 FloatArray = npt.NDArray[np.float64]
 Image32 = npt.NDArray[np.float32]
@@ -181,9 +182,8 @@ class Optics:
         table = ",\n".join(f"    [{c}, {v:.{width}f}]" for c, v in rows)
         return (
             "# Ground-truth focus calibration of the simulated EVI-D100-like camera (DESIGN §2).\n"
-            "# GENERATED from config/sim-camera.toml by\n"
-            "#   python -m drivers.sim.optics --config config/sim-camera.toml "
-            "--write config/lenses/sim-evi-d100.toml\n"
+            "# GENERATED from the reference camera (drivers/sim/data/sim-camera.toml) by\n"
+            "#   python -m drivers.sim.optics --write dffd/defaults/lenses/sim-evi-d100.toml\n"
             "# Do not edit by hand; tests/test_sim_optics.py checks it against the simulator.\n"
             "\n"
             "[lens]\n"
@@ -367,10 +367,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m drivers.sim.optics",
         description="Write the simulated camera's ground-truth focus table (lens TOML).",
     )
-    parser.add_argument("--config", default="config/sim-camera.toml", help="simulated camera TOML")
+    parser.add_argument(
+        "--config", help="simulated camera TOML (default: the reference camera, package data)"
+    )
     parser.add_argument("--write", metavar="FILE", help="output lens file (default: stdout)")
     args = parser.parse_args(argv)
-    config = load_sim_camera_config(args.config)
+    config = load_sim_camera_config(args.config or reference_camera_file())
     optics = Optics.from_config(config)
     if args.write:
         optics.write_lens_table(args.write, config.zoom_counts)
