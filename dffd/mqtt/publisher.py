@@ -518,6 +518,10 @@ class Publisher:
             except aiomqtt.MqttError as exc:
                 _LOGGER.warning("MQTT could not send the reply to command %r: %s", reply.id, exc)
 
+    async def execute(self, payload: object) -> CommandReply:
+        """Run one command as if it arrived on ``…/cmd`` (the web dashboard's path); the reply."""
+        return await self._execute(payload)
+
     async def _execute(self, payload: object) -> CommandReply:
         """Parse, validate and run one command; every failure becomes an ``ok: false`` reply."""
         command_id: str | int | None = None
