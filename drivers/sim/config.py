@@ -120,15 +120,16 @@ class TargetConfig(_Model):
 class TrajectoryConfig(_Model):
     """A target trajectory (keys as ``hil.scenario.TrajectorySpec``); see drivers/sim/world.py."""
 
-    kind: Literal["static", "linear", "circle", "figure-eight", "random"] = "static"
-    position_m: Vec3 = (0.0, 0.0, 5.0)  # static; start of linear
-    end_m: Vec3 = (0.0, 0.0, 2.0)  # linear: end point (then it stops)
+    kind: Literal["static", "linear", "stop-and-go", "circle", "figure-eight", "random"] = "static"
+    position_m: Vec3 = (0.0, 0.0, 5.0)  # static; start of linear / stop-and-go
+    end_m: Vec3 = (0.0, 0.0, 2.0)  # linear: end point (then it stops); stop-and-go: other end
     center_m: Vec3 = (0.0, 0.0, 6.0)  # circle / figure-eight / random
     radius_m: float = Field(default=4.0, gt=0.0)  # circle radius; figure-eight half-extent
     speed_mps: float = Field(default=0.25, ge=0.0, le=5.0)  # path speed (random: mean speed)
     phase_deg: float = 0.0  # circle / figure-eight start phase
     extent_m: Vec3 = (2.0, 0.3, 3.0)  # random: half-box around center
     seed: int = Field(default=0, ge=0)  # random
+    stop_s: float = Field(default=3.0, ge=0.0, le=600.0)  # stop-and-go: rest at each end
 
 
 class WorldConfig(_Model):

@@ -85,6 +85,8 @@ class FrameTruth:
     zoom_moving: bool
     motion_px: Vec2  # image displacement of the target centre during the exposure
     powered: bool
+    acceleration_world_mps2: Vec3 = (0.0, 0.0, 0.0)  # target centre, world frame
+    angular_speed_rad_s: float = 0.0  # turn rate about the upward vertical (drivers/sim/world.py)
 
 
 class SimFrameSource:
@@ -404,6 +406,8 @@ class SimFrameSource:
             zoom_moving=zoom_moving,
             motion_px=motion,
             powered=mid.powered,
+            acceleration_world_mps2=_vec3(pose.acceleration_mps2),
+            angular_speed_rad_s=pose.angular_speed_rad_s,
         )
         return image, truth
 

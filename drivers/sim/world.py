@@ -10,12 +10,18 @@ Target-plane coordinates ``(a, b)``: ``a`` horizontal to the right, ``b`` downwa
 the camera; textures are stored with rows along ``+b``.
 
 Times given to trajectories are scenario seconds (0 at the start of the run).
+
+3D truth: every trajectory gives its position, velocity and acceleration analytically
+(:meth:`Trajectory.kinematics`); the *angular speed* is the turn rate of the velocity about the
+upward vertical ``u = −y``, ``ω = ((v × a) · u) / |v_h|²`` (positive counter-clockwise seen from
+above, i.e. turning +x towards +z; 0 when the horizontal speed is below
+:data:`TURN_RATE_MIN_SPEED_M_S`). On a horizontal circle it is ``±v/R``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import cv2
@@ -29,11 +35,37 @@ FloatArray = npt.NDArray[np.float64]
 DISC_VERTICES = 256  # outline polygon of a disc: sagitta error 0.0075 px at r = 100 px
 BOUNDARY_SAMPLES = 1024  # uniform arc-length samples for sqrt(tr Σ) and truth centroids
 TEXTURE_PX = 256  # texture resolution across the card
-VELOCITY_STEP_S = 1e-3  # central-difference step for the target's velocity
 RANDOM_COMPONENTS = 4  # sinusoids per axis of the smooth random path
 RANDOM_SPEED_WINDOW = 500.0  # unit-time span over which the random path's mean speed is measured
 ARC_TABLE_SAMPLES = 4096  # parameter samples for constant-speed parametrisation of closed curves
 ARUCO_QUIET_MODULES = 1  # white border around the marker, in cells (the card is the boundary)
+# Below this horizontal speed (m/s) the direction of motion — hence the turn rate — is undefined
+# and reported as 0 (a target at rest or moving vertically does not turn).
+TURN_RATE_MIN_SPEED_M_S = 1e-6
+
+
+@dataclass(frozen=True, slots=True)
+class Kinematics:
+    """Position, velocity and acceleration (world frame) and the turn rate at one time."""
+
+    position_m: FloatArray
+    velocity_mps: FloatArray
+    acceleration_mps2: FloatArray
+
+    @property
+    def angular_speed_rad_s(self) -> float:
+        """Turn rate of the velocity about the upward vertical (see the module docstring)."""
+        return turn_rate(self.velocity_mps, self.acceleration_mps2)
+
+
+def turn_rate(velocity: FloatArray, acceleration: FloatArray) -> float:
+    """``((v × a) · u) / |v_h|²`` with ``u = −y`` (up); 0 for a horizontal speed near zero."""
+    vx, vz = float(velocity[0]), float(velocity[2])
+    ax, az = float(acceleration[0]), float(acceleration[2])
+    speed2 = vx * vx + vz * vz
+    if speed2 < TURN_RATE_MIN_SPEED_M_S**2:
+        return 0.0
+    return (vx * az - vz * ax) / speed2
 
 
 class Trajectory(Protocol):
@@ -41,6 +73,10 @@ class Trajectory(Protocol):
 
     def position(self, t: float) -> FloatArray:
         """Position (m) in the world frame at time ``t`` (s)."""
+        ...
+
+    def kinematics(self, t: float) -> Kinematics:
+        """Position, velocity and acceleration at time ``t``, analytically."""
         ...
 
 
@@ -53,6 +89,10 @@ class StaticPath:
     def position(self, t: float) -> FloatArray:
         """Always the same point."""
         return self.point.copy()
+
+    def kinematics(self, t: float) -> Kinematics:
+        """At rest."""
+        return Kinematics(self.point.copy(), np.zeros(3), np.zeros(3))
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,6 +112,55 @@ class LinearPath:
         travelled = min(max(t, 0.0) * self.speed_mps, length)
         return self.start + span * (travelled / length)
 
+    def kinematics(self, t: float) -> Kinematics:
+        """Constant velocity while moving (the start and the stop are velocity steps)."""
+        span = self.end - self.start
+        length = float(np.linalg.norm(span))
+        moving = length > 0.0 and self.speed_mps > 0.0 and 0.0 <= t < length / self.speed_mps
+        velocity = span * (self.speed_mps / length) if moving else np.zeros(3)
+        return Kinematics(self.position(t), velocity, np.zeros(3))
+
+
+@dataclass(frozen=True, slots=True)
+class StopAndGoPath:
+    """Shuttles between ``start`` and ``end``: each leg, then a rest of ``stop_s``.
+
+    Along a leg of length ``L`` the speed is ``2 v̄ sin²(π τ / T)`` with ``T = L / v̄`` (``v̄`` =
+    ``speed_mps``, the mean speed over the leg): it starts and stops smoothly (continuous
+    acceleration, peak ``2π v̄² / L``), so the 3D truth has no impulses.
+    """
+
+    start: FloatArray
+    end: FloatArray
+    speed_mps: float
+    stop_s: float
+
+    def position(self, t: float) -> FloatArray:
+        """Point at time ``t``."""
+        return self.kinematics(t).position_m
+
+    def kinematics(self, t: float) -> Kinematics:
+        """Analytic position, velocity and acceleration."""
+        span = self.end - self.start
+        length = float(np.linalg.norm(span))
+        if length == 0.0 or self.speed_mps == 0.0 or t <= 0.0:
+            return Kinematics(self.start.copy(), np.zeros(3), np.zeros(3))
+        unit = span / length
+        leg_s = length / self.speed_mps
+        period = leg_s + self.stop_s
+        k = math.floor(t / period)
+        tau = t - k * period
+        forward = k % 2 == 0
+        origin = self.start if forward else self.end
+        direction = unit if forward else -unit
+        if tau >= leg_s:
+            return Kinematics(origin + direction * length, np.zeros(3), np.zeros(3))
+        w = 2.0 * math.pi / leg_s
+        s = length * (tau / leg_s - math.sin(w * tau) / (2.0 * math.pi))
+        ds = self.speed_mps * (1.0 - math.cos(w * tau))
+        dds = self.speed_mps * w * math.sin(w * tau)
+        return Kinematics(origin + direction * s, direction * ds, direction * dds)
+
 
 @dataclass(frozen=True, slots=True)
 class CirclePath:
@@ -86,6 +175,17 @@ class CirclePath:
         """``(cx + R sin φ, cy, cz − R cos φ)`` with ``φ = phase + v t / R``."""
         phi = self.phase_rad + self.speed_mps * t / self.radius_m
         return self.center + self.radius_m * np.array([math.sin(phi), 0.0, -math.cos(phi)])
+
+    def kinematics(self, t: float) -> Kinematics:
+        """Uniform circular motion: turn rate ``+v/R`` (counter-clockwise from above)."""
+        omega = self.speed_mps / self.radius_m
+        phi = self.phase_rad + omega * t
+        c, s = math.cos(phi), math.sin(phi)
+        return Kinematics(
+            self.center + self.radius_m * np.array([s, 0.0, -c]),
+            self.speed_mps * np.array([c, 0.0, s]),
+            self.speed_mps * omega * np.array([-s, 0.0, c]),
+        )
 
 
 class FigureEightPath:
@@ -118,6 +218,21 @@ class FigureEightPath:
         phi = float(np.interp(s, self._arc, self._phi))
         return np.asarray(self.center + self._shape(np.array([phi]))[0], dtype=np.float64)
 
+    def kinematics(self, t: float) -> Kinematics:
+        """Velocity ``v T`` and acceleration ``v² κ N`` from the curve's derivatives at φ(s)."""
+        s = (self._s0 + self.speed_mps * t) % self.lap_length_m
+        phi = float(np.interp(s, self._arc, self._phi))
+        a = self.half_extent_m
+        d1 = np.array([2.0 * a * math.cos(2.0 * phi), 0.0, a * math.cos(phi)])  # dP/dφ
+        d2 = np.array([-4.0 * a * math.sin(2.0 * phi), 0.0, -a * math.sin(phi)])  # d²P/dφ²
+        n1 = float(np.linalg.norm(d1))
+        tangent = d1 / n1
+        # With constant path speed v: dφ/dt = v/|P'|, a = v² (P'' − (P''·T) T) / |P'|².
+        normal_part = d2 - float(d2 @ tangent) * tangent
+        position = self.center + np.array([a * math.sin(2.0 * phi), 0.0, a * math.sin(phi)])
+        v = self.speed_mps
+        return Kinematics(position, v * tangent, v * v * normal_part / (n1 * n1))
+
     def _shape(self, phi: FloatArray) -> FloatArray:
         a = self.half_extent_m
         return np.stack((a * np.sin(2.0 * phi), np.zeros_like(phi), a * np.sin(phi)), axis=1)
@@ -148,6 +263,21 @@ class RandomPath:
         offsets = np.sum(self._amp * np.sin(2.0 * math.pi * self._freq * tau + self._phase), axis=1)
         return np.asarray(self.center + offsets, dtype=np.float64)
 
+    def kinematics(self, t: float) -> Kinematics:
+        """Derivatives of the sums of sinusoids."""
+        tau = t * self._time_scale
+        w = 2.0 * math.pi * self._freq
+        arg = w * tau + self._phase
+        k = self._time_scale
+        offsets = np.sum(self._amp * np.sin(arg), axis=1)
+        velocity = k * np.sum(self._amp * w * np.cos(arg), axis=1)
+        acceleration = -k * k * np.sum(self._amp * w * w * np.sin(arg), axis=1)
+        return Kinematics(
+            np.asarray(self.center + offsets, dtype=np.float64),
+            np.asarray(velocity, dtype=np.float64),
+            np.asarray(acceleration, dtype=np.float64),
+        )
+
     def _velocity_unit(self, tau: FloatArray) -> FloatArray:
         arg = 2.0 * math.pi * self._freq[:, :, None] * tau[None, None, :] + self._phase[:, :, None]
         coeff = (self._amp * 2.0 * math.pi * self._freq)[:, :, None]
@@ -163,6 +293,10 @@ def make_trajectory(config: TrajectoryConfig) -> Trajectory:
     if config.kind == "circle":
         return CirclePath(
             _vec(config.center_m), config.radius_m, config.speed_mps, math.radians(config.phase_deg)
+        )
+    if config.kind == "stop-and-go":
+        return StopAndGoPath(
+            _vec(config.position_m), _vec(config.end_m), config.speed_mps, config.stop_s
         )
     if config.kind == "figure-eight":
         return FigureEightPath(
@@ -248,6 +382,8 @@ class TargetPose:
     position_m: FloatArray  # centre, world frame
     velocity_mps: FloatArray
     roll_rad: float  # rotation about the line of sight (clockwise as seen by the camera)
+    acceleration_mps2: FloatArray = field(default_factory=lambda: np.zeros(3))
+    angular_speed_rad_s: float = 0.0  # turn rate about the upward vertical (module docstring)
 
 
 class World:
@@ -280,10 +416,15 @@ class World:
 
     def pose(self, t: float) -> TargetPose:
         """The target's pose at scenario time ``t``."""
-        h = VELOCITY_STEP_S
-        position = self.trajectory.position(t)
-        velocity = (self.trajectory.position(t + h) - self.trajectory.position(t - h)) / (2 * h)
-        return TargetPose(t, position, velocity, self._roll0 + self._roll_rate * t)
+        kin = self.trajectory.kinematics(t)
+        return TargetPose(
+            t,
+            kin.position_m,
+            kin.velocity_mps,
+            self._roll0 + self._roll_rate * t,
+            kin.acceleration_mps2,
+            kin.angular_speed_rad_s,
+        )
 
     def to_world(self, pose: TargetPose, plane_points: FloatArray) -> FloatArray:
         """Target-plane points (N×2, m) to world points (N×3) for the card facing the camera."""
