@@ -97,8 +97,8 @@ def test_state_machine_acquire_release_lost_and_reacquire() -> None:
     assert out.estimate is not None
     assert out.estimate.z_m is None  # no depth before the first burst
     pipe.release()
-    assert pipe.state == "acquiring"
-    assert pipe.process(*_frame(1, 0.033, 4.0, c)).state == "acquiring"  # held after release
+    assert pipe.state == "idle"
+    assert pipe.process(*_frame(1, 0.033, 4.0, c)).state == "idle"  # held after release
     # the disc is about 34 px wide at 4 m: an ROI around it acquires it
     pipe.acquire_roi(260, 180, 120, 120)
     assert pipe.process(*_frame(2, 0.066, 4.0, c)).state == "tracking"
@@ -109,6 +109,12 @@ def test_state_machine_acquire_release_lost_and_reacquire() -> None:
     assert found[-1] == "tracking"
     with pytest.raises(ValueError, match="positive size"):
         pipe.acquire_roi(0, 0, 0, 10)
+    # released, then back to automatic detection without an ROI
+    pipe.release()
+    assert pipe.process(*_frame(20, 0.6, 4.0, c)).state == "idle"
+    pipe.acquire_auto()
+    assert pipe.state == "acquiring"
+    assert pipe.process(*_frame(21, 0.633, 4.0, c)).state == "tracking"
 
 
 def test_incomplete_burst_is_rejected_and_plan_uses_the_prediction() -> None:

@@ -50,7 +50,7 @@ from .types import FrameTag
 
 logger = logging.getLogger(__name__)
 
-TrackState = Literal["acquiring", "tracking", "lost"]
+TrackState = Literal["idle", "acquiring", "tracking", "lost"]
 EstimatorName = Literal["measured", "cf1", "cf2", "lpv", "kf"]
 ESTIMATORS: tuple[EstimatorName, ...] = ("measured", "cf1", "cf2", "lpv", "kf")
 Vec3 = tuple[float, float, float]
@@ -229,8 +229,8 @@ class Pipeline:
         self.lpv_gains = LPVGains.from_poles(
             config.lpv_omega, config.lpv_zeta, config.rho_min, config.rho_max
         )
-        self._state: TrackState = "acquiring"
         self._hold = not config.auto_acquire
+        self._state: TrackState = "idle" if self._hold else "acquiring"
         self._pending_roi: tuple[int, int, int, int] | None = None
         self._known_size = config.known_size_m
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
@@ -243,7 +243,7 @@ class Pipeline:
     # -- public API -------------------------------------------------------------------------
     @property
     def state(self) -> TrackState:
-        """acquiring / tracking / lost."""
+        """idle (released: no search) / acquiring / tracking / lost."""
         return self._state
 
     def acquire_roi(self, x: int, y: int, w: int, h: int) -> None:
@@ -256,12 +256,21 @@ class Pipeline:
         self._state = "acquiring"
         self._reset_estimators()
 
+    def acquire_auto(self) -> None:
+        """Search the whole frame for the target from the next frame (drops the current target)."""
+        self._pending_roi = None
+        self._hold = False
+        self._tracker.reset()
+        self._state = "acquiring"
+        self._last_box = None
+        self._reset_estimators()
+
     def release(self) -> None:
-        """Stop tracking; stay in ``acquiring`` without searching until :meth:`acquire_roi`."""
+        """Stop tracking: ``idle``, no search, until :meth:`acquire_roi` or :meth:`acquire_auto`."""
         self._tracker.reset()
         self._pending_roi = None
         self._hold = True
-        self._state = "acquiring"
+        self._state = "idle"
         self._last_box = None
         self._reset_estimators()
 

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 SCHEMA_VERSION: Final = 1
 
-State = Literal["acquiring", "tracking", "lost"]
+State = Literal["idle", "acquiring", "tracking", "lost"]
 EstimatorName = Literal["lpv", "kf", "cf2", "cf1"]
 Availability = Literal["online", "offline"]
 
