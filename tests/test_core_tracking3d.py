@@ -245,7 +245,7 @@ def test_imm_mixing_by_hand() -> None:
     x0, x1 = np.zeros(STATE_DIM), np.zeros(STATE_DIM)
     x1[0] = 3.0
     p0, p1 = np.eye(STATE_DIM) * 1.0, np.eye(STATE_DIM) * 4.0
-    xs, ps, c = imm_mix([x0, x1], [p0, p1], mu, pi)
+    xs, ps, c = imm_mix(np.stack([x0, x1]), np.stack([p0, p1]), mu, pi)
     # c = πᵀ μ = [0.72 + 0.04, 0.08 + 0.16]
     np.testing.assert_allclose(c, [0.76, 0.24])
     # into model 1: weights [0.08, 0.16]/0.24 = [1/3, 2/3] → mean 2, variance

@@ -195,23 +195,23 @@ def markov_matrix(n: int, rate_hz: float, dt: float) -> FloatArray:
 
 
 def imm_mix(
-    states: Sequence[FloatArray], covs: Sequence[FloatArray], mu: FloatArray, pi: FloatArray
-) -> tuple[list[FloatArray], list[FloatArray], FloatArray]:
-    """IMM interaction: (mixed states, mixed covariances, predicted model probabilities ``c``)."""
-    c = pi.T @ mu  # c_j = Σ_i π_ij μ_i
-    n = len(states)
-    mixed_x: list[FloatArray] = []
-    mixed_p: list[FloatArray] = []
-    for j in range(n):
-        w = pi[:, j] * mu / c[j] if c[j] > 0.0 else np.full(n, 1.0 / n)
-        x0 = sum((w[i] * states[i] for i in range(n)), start=np.zeros(STATE_DIM))
-        p0 = np.zeros((STATE_DIM, STATE_DIM))
-        for i in range(n):
-            d = states[i] - x0
-            p0 += w[i] * (covs[i] + np.outer(d, d))
-        mixed_x.append(x0)
-        mixed_p.append(_sym(p0))
-    return mixed_x, mixed_p, np.asarray(c, dtype=np.float64)
+    states: FloatArray, covs: FloatArray, mu: FloatArray, pi: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """IMM interaction on stacked (n, 10) states and (n, 10, 10) covariances.
+
+    Returns the mixed states and covariances (same shapes) and the predicted probabilities
+    ``c_j = Σ_i π_ij μ_i``.
+    """
+    c = pi.T @ mu
+    joint = pi * mu[:, None]  # joint[i, j] = π_ij μ_i
+    safe = np.where(c > 0.0, c, 1.0)
+    w = np.where(c > 0.0, joint / safe, 1.0 / len(mu))  # w[i, j] = μ_{i|j}
+    mixed = w.T @ states
+    d = states[:, None, :] - mixed[None, :, :]  # d[i, j] = x_i − x0_j
+    spread = np.einsum("ij,ija,ijb->jab", w, d, d)
+    covs_mixed = np.einsum("ij,iab->jab", w, covs) + spread
+    covs_mixed = 0.5 * (covs_mixed + covs_mixed.transpose(0, 2, 1))
+    return mixed, covs_mixed, np.asarray(c, dtype=np.float64)
 
 
 class Tracker3D:
@@ -230,8 +230,8 @@ class Tracker3D:
         self.method = method
         self.names = [m.name for m in self.models]
         n = len(self.models)
-        self._x = [np.zeros(STATE_DIM) for _ in range(n)]
-        self._p = [np.eye(STATE_DIM) for _ in range(n)]
+        self._x = np.zeros((n, STATE_DIM))
+        self._p = np.zeros((n, STATE_DIM, STATE_DIM))
         self._mu = np.full(n, 1.0 / n)
         self._t: float | None = None
 
@@ -293,11 +293,9 @@ class Tracker3D:
         if self._t is None:
             return None
         mu = self._mu
-        x = sum((m * xi for m, xi in zip(mu, self._x, strict=True)), start=np.zeros(STATE_DIM))
-        pp = np.zeros((3, 3))
-        for m, xi, pi in zip(mu, self._x, self._p, strict=True):
-            d = xi[POS] - x[POS]
-            pp += m * (pi[POS, POS] + np.outer(d, d))
+        x = mu @ self._x
+        d = self._x[:, POS] - x[POS]
+        pp = np.einsum("j,jab->ab", mu, self._p[:, POS, POS]) + (d.T * mu) @ d
         omega = sum(
             float(m) * model.angular_speed(xi)
             for m, model, xi in zip(mu, self.models, self._x, strict=True)
@@ -325,8 +323,8 @@ class Tracker3D:
         p[ACC, ACC] = np.eye(3) * cfg.init_sigma_a_m_s2**2
         p[OMEGA, OMEGA] = cfg.init_sigma_omega_rad_s**2
         n = len(self.models)
-        self._x = [x.copy() for _ in range(n)]
-        self._p = [p.copy() for _ in range(n)]
+        self._x = np.tile(x, (n, 1))
+        self._p = np.tile(p, (n, 1, 1))
         self._mu = np.full(n, 1.0 / n)
         self._t = t
 
@@ -335,11 +333,10 @@ class Tracker3D:
         if self.method == "imm" and len(self.models) > 1:
             pi = markov_matrix(len(self.models), self.config.switch_rate_hz, dt)
             xs, ps, self._mu = imm_mix(xs, ps, self._mu, pi)
-        new_x, new_p = [], []
-        for model, x, p in zip(self.models, xs, ps, strict=True):
-            xp, f, q = model.predict(x, dt)
-            new_x.append(xp)
-            new_p.append(_sym(f @ p @ f.T + q))
+        new_x, new_p = np.empty_like(xs), np.empty_like(ps)
+        for j, model in enumerate(self.models):
+            new_x[j], f, q = model.predict(xs[j], dt)
+            new_p[j] = _sym(f @ ps[j] @ f.T + q)
         self._x, self._p = new_x, new_p
 
     def _update(self, y: FloatArray, r: FloatArray) -> None:
@@ -351,24 +348,65 @@ class Tracker3D:
             self._mu = mmae_probabilities(self._mu, loglik, floor)
 
 
+class Tracker3DBank:
+    """Trackers of several kinds fed the same measurements (the first kind is the published one).
+
+    The service runs ``("mmae",)``; the bench adds ``"imm"`` and ``"cv"`` to compare them on the
+    same frames.
+    """
+
+    def __init__(
+        self, kinds: Sequence[TrackerKind] = ("mmae",), config: Tracker3DConfig | None = None
+    ) -> None:
+        if not kinds:
+            raise ValueError("a tracker bank needs at least one tracker kind")
+        self.kinds = tuple(kinds)
+        self.trackers = {kind: Tracker3D.of_kind(kind, config) for kind in self.kinds}
+
+    def step(
+        self, t: float, y_r: tuple[FloatArray, FloatArray] | None
+    ) -> dict[str, Track3DEstimate]:
+        """Step every tracker (see :meth:`Tracker3D.step_cartesian`); those with a track."""
+        out: dict[str, Track3DEstimate] = {}
+        for kind, tracker in self.trackers.items():
+            est = tracker.step_cartesian(t, y_r)
+            if est is not None:
+                out[kind] = est
+        return out
+
+    def reset(self) -> None:
+        """Forget every track."""
+        for tracker in self.trackers.values():
+            tracker.reset()
+
+
 def _kf_update(
     x: FloatArray, p: FloatArray, y: FloatArray, r: FloatArray
 ) -> tuple[FloatArray, FloatArray, float]:
     """Joseph-form update with ``H = [I₃ 0]``; returns (x⁺, P⁺, log-likelihood of y)."""
     nu = y - x[POS]
-    s = _sym(p[POS, POS] + r)
-    chol = np.linalg.cholesky(s)  # S = L Lᵀ; raises LinAlgError if S is not positive definite
-    w = np.linalg.solve(chol, nu)
-    maha = float(w @ w)
-    logdet = 2.0 * float(np.sum(np.log(np.diag(chol))))
-    s_inv = np.linalg.inv(s)
-    gain = p[:, POS] @ s_inv  # P Hᵀ S⁻¹
+    s_inv, logdet = _inv3_logdet(p[POS, POS] + r)
+    maha = float(nu @ s_inv @ nu)
     loglik = -0.5 * (maha + logdet + 3.0 * _LOG_2PI)
+    gain = p[:, POS] @ s_inv  # P Hᵀ S⁻¹
     x_new = x + gain @ nu
-    i_kh = np.eye(STATE_DIM)
-    i_kh[:, POS] -= gain
-    p_new = i_kh @ p @ i_kh.T + gain @ r @ gain.T
+    # Joseph form (I − KH) P (I − KH)ᵀ + K R Kᵀ, with A = (I − KH) P = P − K (H P):
+    # (I − KH) P (I − KH)ᵀ = A − (A Hᵀ) Kᵀ — exact for any K, and only 10×3 products.
+    a = p - gain @ p[POS, :]
+    p_new = a - a[:, POS] @ gain.T + gain @ r @ gain.T
     return x_new, _sym(p_new), loglik
+
+
+def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
+    """Inverse and log-determinant of a symmetric positive-definite 3×3, by cofactors."""
+    (a, b, c), (_, d, e), (_, _, f) = s.tolist()
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * c00 + b * c01 + c * c02
+    if not det > 0.0:
+        raise np.linalg.LinAlgError(f"innovation covariance is not positive definite: {s!r}")
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    inv = np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]) / det
+    return inv, math.log(det)
 
 
 def _sym(m: FloatArray) -> FloatArray:
