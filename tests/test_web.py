@@ -17,7 +17,13 @@ from dffd.mqtt import models
 from dffd.mqtt.latency import make_estimate
 from dffd.mqtt.publisher import Publisher, PublisherSettings
 from dffd.mqtt.topics import Topics
-from dffd.web.interface import DashboardFeed, DashboardSource, FrameView, Overlay
+from dffd.web.interface import (
+    CallbackSource,
+    DashboardFeed,
+    DashboardSource,
+    FrameView,
+    Overlay,
+)
 from dffd.web.overlay import annotate, normals
 from dffd.web.server import (
     DashboardServer,
@@ -352,3 +358,13 @@ def test_feed_is_bounded_and_keeps_only_rejections(daemon: SyntheticDaemon) -> N
     assert [(m.burst, m.fit.reason) for m in feed.rejections()] == [
         (3, "vertex outside"), (4, "residual"),
     ]  # fmt: skip
+
+
+async def test_callback_source_is_a_dashboard_source() -> None:
+    static = StaticSource()
+    source = CallbackSource(static.snapshot, static.execute)
+    assert isinstance(source, DashboardSource)
+    assert source.snapshot() == static.snapshot()
+    reply = await source.execute(b'{"cmd": "ping"}')
+    assert reply.ok
+    assert static.replies == [b'{"cmd": "ping"}']

@@ -9,7 +9,7 @@ return at once: no I/O, no waiting on the estimator thread (commands excepted, w
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Final, Protocol, runtime_checkable
 
@@ -155,3 +155,27 @@ class DashboardFeed:
     def rejections(self) -> list[models.Measurement]:
         """See :meth:`DashboardSource.rejections`."""
         return list(self._rejections)
+
+
+class CallbackSource(DashboardFeed):
+    """A complete :class:`DashboardSource`: a feed plus the daemon's snapshot and command path."""
+
+    def __init__(
+        self,
+        snapshot: Callable[[], Snapshot | None],
+        execute: Callable[[bytes], Awaitable[models.CommandReply]],
+        *,
+        history_max: int = ESTIMATE_HISTORY_MAX,
+        rejections_max: int = REJECTIONS_MAX,
+    ) -> None:
+        super().__init__(history_max, rejections_max)
+        self._snapshot = snapshot
+        self._execute = execute
+
+    def snapshot(self) -> Snapshot | None:
+        """See :meth:`DashboardSource.snapshot`."""
+        return self._snapshot()
+
+    async def execute(self, payload: bytes) -> models.CommandReply:
+        """See :meth:`DashboardSource.execute`."""
+        return await self._execute(payload)
