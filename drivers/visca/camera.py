@@ -44,12 +44,8 @@ from drivers.visca.codec import (
     check_range,
 )
 from drivers.visca.errors import ViscaError, ViscaNetworkChangeError, ViscaTimeoutError
-from drivers.visca.link import (
-    FIELD_S,
-    POWER_COMPLETION_TIMEOUT_S,
-    CommandHandle,
-    ViscaLink,
-)
+from drivers.visca.link import CommandHandle, LinkApi
+from drivers.visca.session import FIELD_S, POWER_COMPLETION_TIMEOUT_S
 
 logger = logging.getLogger(__name__)
 
@@ -186,7 +182,7 @@ class Camera:
 
     def __init__(
         self,
-        link: ViscaLink,
+        link: LinkApi,
         address: int = 1,
         profile: CameraProfile = EVI_D100,
         *,
@@ -206,30 +202,11 @@ class Camera:
     async def initialize(self) -> Version:
         """Address Set + IF_Clear, power on if in standby, read the version, manual focus.
 
-        Registers itself to run again after a reconnect or Network Change.
+        Registers itself to run again, behind the link's gate, after a reconnect or Network
+        Change.
         """
-        chain = await self._retry(self.link.ensure_addressed)
-        if chain and self.address > chain:
-            raise ViscaError(
-                f"no camera at address {self.address}: Address Set found {chain} camera(s) on "
-                f"{self.link.url}; check the configured address and the daisy-chain cabling"
-            )
-        await self._retry(lambda: self.link.inquire(self.address, IFClear()))
-        power = await self._retry(lambda: self.link.inquire(self.address, PowerInquiry()))
-        if not power.on:
-            logger.info("camera %d is in standby: powering on", self.address)
-            await self.power(on=True)
-        version = await self.version()
-        if version.max_sockets in (1, 2):
-            self.link.set_max_sockets(self.address, version.max_sockets)
-        await self.focus_mode(auto=False)
-        self.version_info = version
-        self.link.add_reinit_callback(self._reinitialize)
-        logger.info(
-            "camera %d (%s profile) ready: vendor %04X model %04X rom %04X, %d socket(s)",
-            self.address, self.profile.name, version.vendor, version.model, version.rom,
-            version.max_sockets,
-        )  # fmt: skip
+        version = await self._setup()
+        self.link.add_reinit_step(self._reinit_step)
         return version
 
     async def version(self) -> Version:
@@ -468,9 +445,41 @@ class Camera:
                 last = position
                 await asyncio.sleep(FOCUS_POLL_PERIOD_S)  # pacing: one inquiry per two fields
 
-    async def _reinitialize(self) -> None:
-        logger.info("re-initialising camera %d on %s", self.address, self.link.url)
-        await self.initialize()
+    async def _setup(self) -> Version:
+        chain = await self._retry(self.link.ensure_addressed)
+        if chain and self.address > chain:
+            raise ViscaError(
+                f"no camera at address {self.address}: Address Set found {chain} camera(s) on "
+                f"{self.link.url}; check the configured address and the daisy-chain cabling"
+            )
+        await self._retry(lambda: self.link.inquire(self.address, IFClear()))
+        power = await self._retry(lambda: self.link.inquire(self.address, PowerInquiry()))
+        if not power.on:
+            logger.info("camera %d is in standby: powering on", self.address)
+            await self.power(on=True)
+        version = await self.version()
+        if version.max_sockets in (1, 2):
+            self.link.set_max_sockets(self.address, version.max_sockets)
+        await self.focus_mode(auto=False)
+        self.version_info = version
+        logger.info(
+            "camera %d (%s profile) ready: vendor %04X model %04X rom %04X, %d socket(s)",
+            self.address, self.profile.name, version.vendor, version.model, version.rom,
+            version.max_sockets,
+        )  # fmt: skip
+        return version
+
+    async def _reinit_step(self, link: LinkApi) -> None:
+        # The same set-up, through the re-initialisation's pass of the link's gate.
+        logger.info("re-initialising camera %d on %s", self.address, link.url)
+        shadow = Camera(
+            link,
+            self.address,
+            self.profile,
+            retries=self.retries,
+            move_timeout_margin_s=self.move_timeout_margin_s,
+        )
+        self.version_info = await shadow._setup()
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,187 @@
+"""Transports under the VISCA link: a byte pipe to the camera line, opened per connection.
+
+A transport carries whole VISCA packets out (:meth:`Transport.write`, one ``8x … FF`` packet per
+call, so a datagram transport can frame each one) and hands whatever arrives to the ``on_data``
+callback it was opened with; a transport that breaks calls ``on_lost`` once. Both callbacks run
+on the event loop. The link opens a new transport for every (re)connection through a
+:data:`TransportFactory`, so a test or a new medium (UDP, TCP) plugs in without touching the
+link.
+
+:class:`SerialTransport`: a pyserial port read by a dedicated thread, not pyserial-asyncio-fast.
+That library registers ``port.fileno()`` with the event loop, which ``loop://`` (and other URL
+handlers without a file descriptor) do not have; a reader thread works identically for every
+pyserial URL (``/dev/ttyUSB0``, a pty path, ``socket://``, ``loop://``) and turns a vanishing
+adapter into one exception in one place. The thread blocks in ``read`` with a short timeout and
+hands bytes to the loop with ``call_soon_threadsafe``. Writes (3–16 bytes) go straight from the
+loop into the tty driver's buffer, which never blocks without flow control; ``write_timeout``
+bounds a wedged port.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import logging
+import threading
+from collections.abc import Awaitable, Callable
+from typing import Protocol
+
+import serial
+
+logger = logging.getLogger(__name__)
+
+# Reader thread poll period: how quickly close() gets the thread back (cancel_read interrupts
+# it on POSIX anyway).
+READ_POLL_S = 0.05
+# Bound on a write into a wedged port (the tty buffer normally takes 16 bytes at once).
+WRITE_TIMEOUT_S = 0.5
+# How long close() waits for the reader thread (it wakes within READ_POLL_S).
+READER_JOIN_S = 10 * READ_POLL_S
+
+DataCallback = Callable[[bytes], None]
+LostCallback = Callable[[BaseException], None]
+
+
+class Transport(Protocol):
+    """One open connection to a VISCA line."""
+
+    def write(self, packet: bytes) -> None:
+        """Send one VISCA packet; raise OSError if the line is gone."""
+        ...
+
+    async def close(self) -> None:
+        """Close the connection (no callback runs afterwards)."""
+        ...
+
+
+# Opens a connection: raise OSError or ValueError when it cannot be opened.
+TransportFactory = Callable[[DataCallback, LostCallback], Awaitable[Transport]]
+
+
+class SerialPortLike(Protocol):
+    """The part of ``serial.Serial`` the serial transport uses (a test can pass any object)."""
+
+    @property
+    def in_waiting(self) -> int: ...
+
+    def read(self, size: int = 1) -> bytes: ...
+
+    def write(self, data: bytes, /) -> int | None: ...
+
+    def reset_input_buffer(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+PortFactory = Callable[[str, int], SerialPortLike]
+
+
+def open_serial_port(url: str, baudrate: int) -> SerialPortLike:
+    """Open ``url`` raw 8N1 at ``baudrate``, no flow control (the default port factory)."""
+    port: SerialPortLike = serial.serial_for_url(
+        url,
+        baudrate=baudrate,
+        bytesize=serial.EIGHTBITS,
+        parity=serial.PARITY_NONE,
+        stopbits=serial.STOPBITS_ONE,
+        timeout=READ_POLL_S,
+        write_timeout=WRITE_TIMEOUT_S,
+        xonxoff=False,
+        rtscts=False,
+        dsrdtr=False,
+    )
+    return port
+
+
+def serial_factory(
+    url: str, baudrate: int, port_factory: PortFactory = open_serial_port
+) -> TransportFactory:
+    """A factory opening :class:`SerialTransport` on ``url`` at ``baudrate``."""
+    return functools.partial(SerialTransport.open, url, baudrate, port_factory=port_factory)
+
+
+class SerialTransport:
+    """A serial port (any pyserial URL) with a reader thread feeding the event loop."""
+
+    def __init__(
+        self,
+        port: SerialPortLike,
+        url: str,
+        loop: asyncio.AbstractEventLoop,
+        on_data: DataCallback,
+        on_lost: LostCallback,
+    ) -> None:
+        self._port = port
+        self._url = url
+        self._loop = loop
+        self._on_data = on_data
+        self._on_lost = on_lost
+        self._stop = threading.Event()
+        self._reader = threading.Thread(
+            target=self._reader_main, name=f"visca-reader {url}", daemon=True
+        )
+
+    @classmethod
+    async def open(
+        cls,
+        url: str,
+        baudrate: int,
+        on_data: DataCallback,
+        on_lost: LostCallback,
+        *,
+        port_factory: PortFactory = open_serial_port,
+    ) -> SerialTransport:
+        """Open the port, flush stale input (bytes from before we opened are not replies)."""
+        port = await asyncio.to_thread(port_factory, url, baudrate)
+        try:
+            port.reset_input_buffer()
+        except (serial.SerialException, OSError):
+            port.close()
+            raise
+        transport = cls(port, url, asyncio.get_running_loop(), on_data, on_lost)
+        transport._reader.start()
+        return transport
+
+    def write(self, packet: bytes) -> None:
+        """Write one packet into the tty buffer (OSError when the port is gone)."""
+        if self._stop.is_set():
+            raise OSError(f"serial port {self._url} is closed")
+        self._port.write(packet)
+
+    async def close(self) -> None:
+        """Stop the reader thread and close the port."""
+        self._stop.set()
+        cancel_read = getattr(self._port, "cancel_read", None)
+        if cancel_read is not None:
+            with contextlib.suppress(Exception):
+                cancel_read()
+        if self._reader.is_alive() and self._reader is not threading.current_thread():
+            await asyncio.to_thread(self._reader.join, READER_JOIN_S)
+        with contextlib.suppress(Exception):
+            self._port.close()
+
+    def _reader_main(self) -> None:
+        port, stop, loop = self._port, self._stop, self._loop
+        while not stop.is_set():
+            try:
+                waiting = port.in_waiting
+                data = port.read(waiting if waiting > 0 else 1)
+            except Exception as exc:  # noqa: BLE001 - any failure of the port means it is gone
+                if not stop.is_set():
+                    with contextlib.suppress(RuntimeError):  # loop already closed
+                        loop.call_soon_threadsafe(self._lost, exc)
+                return
+            if data and not stop.is_set():
+                try:
+                    loop.call_soon_threadsafe(self._data, data)
+                except RuntimeError:
+                    return
+
+    def _data(self, data: bytes) -> None:
+        if not self._stop.is_set():
+            self._on_data(data)
+
+    def _lost(self, exc: BaseException) -> None:
+        if not self._stop.is_set():
+            self._on_lost(exc)
