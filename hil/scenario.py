@@ -19,7 +19,15 @@ from drivers.sim.config import SimConfigError
 from drivers.sim.resources import world_tables
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
-SCENARIO_NAMES = ("static", "approach", "paper-circle", "figure-eight", "random")
+SCENARIO_NAMES = (
+    "static",
+    "approach",
+    "paper-circle",
+    "figure-eight",
+    "random",
+    "line",
+    "stop-and-go",
+)
 
 
 class ScenarioError(ValueError):
@@ -43,14 +51,15 @@ class TargetSpec(_Model):
 class TrajectorySpec(_Model):
     """A target trajectory; which keys matter depends on ``kind``."""
 
-    kind: Literal["static", "linear", "circle", "figure-eight", "random"]
-    position_m: tuple[float, float, float] = (0.0, 0.0, 5.0)  # static; start of linear
-    end_m: tuple[float, float, float] = (0.0, 0.0, 2.0)  # linear: end point (then it stops)
+    kind: Literal["static", "linear", "stop-and-go", "circle", "figure-eight", "random"]
+    position_m: tuple[float, float, float] = (0.0, 0.0, 5.0)  # static; start of linear/stop-and-go
+    end_m: tuple[float, float, float] = (0.0, 0.0, 2.0)  # linear: end (then at rest); stop-and-go
     center_m: tuple[float, float, float] = (0.0, 0.0, 6.0)  # circle / figure-eight / random
     radius_m: float = Field(4.0, gt=0.0)  # circle radius; figure-eight half-extent
     speed_mps: float = Field(0.25, ge=0.0, le=5.0)  # path speed (random: mean speed)
     phase_deg: float = 0.0  # circle / figure-eight start phase
     extent_m: tuple[float, float, float] = (2.0, 0.3, 3.0)  # random: half-box around center
+    stop_s: float = Field(3.0, ge=0.0, le=600.0)  # stop-and-go: rest at each end
 
 
 class CameraSpec(_Model):
