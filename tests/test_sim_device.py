@@ -79,7 +79,7 @@ def test_power_up_sends_network_change_and_comes_up_in_autofocus() -> None:
 @pytest.mark.parametrize(
     ("request_", "expected"),
     [
-        (codec.VersionInquiry(), "90 50 00 20 04 0E 02 00 02 FF"),
+        (codec.VersionInquiry(), "90 50 00 01 04 0D 02 00 02 FF"),
         (codec.PanTiltMaxSpeedInquiry(), "90 50 18 14 FF"),
         (codec.PanTiltPositionInquiry(), "90 50 00 00 00 00 00 00 00 00 FF"),
         (codec.FocusPositionInquiry(), "90 50 01 00 00 00 FF"),
@@ -297,7 +297,6 @@ def test_manual_focus_in_autofocus_is_not_executable() -> None:
         "81 01 04 00 04 FF",  # power 04
         "81 01 7E 7E FF",  # unknown command
         "81 09 04 7E FF",  # unknown inquiry
-        "81 23 FF",  # cancel socket 3
         "81 01 04 48 01 00 10 00 FF",  # a data byte that is not a nibble
     ],
 )
@@ -305,6 +304,12 @@ def test_malformed_or_out_of_range_is_a_syntax_error(raw: str) -> None:
     cam = manual_camera()
     assert hexes(cam.exchange(bytes.fromhex(raw))) == ["90 60 02 FF"]
     assert cam.device.busy_sockets() == []
+
+
+@pytest.mark.parametrize("socket", [0, 3, 0x0F])
+def test_cancel_of_a_socket_the_camera_does_not_have_is_no_socket(socket: int) -> None:
+    cam = manual_camera()
+    assert hexes(cam.exchange(bytes([0x81, 0x20 | socket, 0xFF]))) == [f"90 6{socket:X} 05 FF"]
 
 
 def test_overlong_packet_is_a_message_length_error_and_the_camera_resynchronises() -> None:
@@ -563,7 +568,7 @@ def test_no_byte_stream_breaks_the_camera(noise: bytes, chunk: int) -> None:
     inquiry = codec.encode_request(codec.VersionInquiry(), address)
     sent = cam.exchange(b"\xff" + inquiry, within_s=0.5)
     assert packets(sent)[-1] == codec.encode_reply(
-        InquiryReply(codec.Version(0x0020, 0x040E, 0x0200, 2).to_data()), address
+        InquiryReply(codec.Version(0x0001, 0x040D, 0x0200, 2).to_data()), address
     )
 
 

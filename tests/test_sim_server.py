@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import os
+import select
 import signal
 import subprocess
 import sys
 import time
+import tty
 from pathlib import Path
 
 import pytest
@@ -23,9 +25,12 @@ SERIAL_TIMEOUT_S = 2.0
 SILENCE_S = 0.2
 # Start-up of `dffd sim-camera` as a subprocess (interpreter + imports) on a slow machine.
 CLI_START_TIMEOUT_S = 20.0
+# A raw controller's read of one reply, and the wait for the camera to finish a move.
+RAW_READ_TIMEOUT_S = 2.0
+WAIT_S = 5.0
 
 VERSION_INQ = codec.encode_request(codec.VersionInquiry(), 1)
-VERSION_REPLY = bytes.fromhex("90 50 00 20 04 0E 02 00 02 FF")
+VERSION_REPLY = bytes.fromhex("90 50 00 01 04 0D 02 00 02 FF")
 
 
 def open_port(path: str, timeout: float = SERIAL_TIMEOUT_S) -> serial.Serial:
@@ -185,3 +190,54 @@ def _readline_with_timeout(proc: subprocess.Popen[str], timeout: float) -> str:
         if not sel.select(timeout):
             raise AssertionError(f"sim-camera printed nothing within {timeout} s")
     return proc.stdout.readline()
+
+
+# ---- a controller that attaches late reads only its own replies ------------------------------
+
+
+def _read_packets(fd: int, count: int) -> list[bytes]:
+    """Read ``count`` complete packets from a blocking fd (bounded by a select timeout)."""
+    reassembler = codec.Reassembler()
+    found: list[bytes] = []
+    while len(found) < count:
+        ready, _, _ = select.select([fd], [], [], RAW_READ_TIMEOUT_S)
+        if not ready:
+            break
+        found += reassembler.feed(os.read(fd, 64))
+    return found
+
+
+async def _exchange_raw(path: str, request: codec.Request, replies: int) -> list[bytes]:
+    """Open the pty like libvisca does (os.open, no flush), write, read ``replies`` packets."""
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+    try:
+        tty.setraw(fd)
+        os.write(fd, codec.encode_request(request, 1))
+        return await asyncio.to_thread(_read_packets, fd, replies)
+    finally:
+        os.close(fd)
+
+
+async def test_a_controller_opening_the_pty_late_reads_only_replies_to_its_own_commands() -> None:
+    config = DeviceConfig(autofocus_at_power_up=False, focus_speed_counts_s=0x7400 / 0.1)
+    async with SimCameraServer(config, stale_output_s=0.05) as server:
+        # The power-up Network Change went to nobody: it is gone once it has waited 50 ms.
+        await asyncio.wait_for(_discarded(server, 3), WAIT_S)
+        first = await _exchange_raw(server.path, codec.VersionInquiry(), 1)
+        assert first == [codec.encode_reply(codec.InquiryReply(
+            codec.Version(0x0001, 0x040D, 0x0200, 2).to_data()), 1)]  # fmt: skip
+        # A controller that sends a move and leaves: its Completion comes after it has gone.
+        fd = os.open(server.path, os.O_RDWR | os.O_NOCTTY)
+        tty.setraw(fd)
+        os.write(fd, codec.encode_request(codec.FocusDirect(0x8000), 1))
+        os.close(fd)
+        await asyncio.wait_for(_discarded(server, 3 + 6), WAIT_S)
+        second = await _exchange_raw(server.path, codec.PowerInquiry(), 1)
+        assert second == [bytes.fromhex("90 50 02 FF")]
+
+
+async def _discarded(server: SimCameraServer, count: int) -> None:
+    while server.discarded_stale_bytes < count:
+        await server.output_discarded.wait()
+        server.output_discarded.clear()
+    assert server.discarded_stale_bytes == count

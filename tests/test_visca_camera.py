@@ -36,7 +36,7 @@ async def _until_pan(camera: Camera, predicate: object) -> float:
 
 async def test_initialize_sets_manual_focus_and_powers_on() -> None:
     async with sim_camera() as (server, link, camera):
-        assert camera.version_info == codec.Version(0x0020, 0x040E, 0x0200, 2)
+        assert camera.version_info == codec.Version(0x0001, 0x040D, 0x0200, 2)
         assert server.state.autofocus is False
         assert link.chain_length == 1
         await camera.power(False)

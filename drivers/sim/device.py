@@ -81,8 +81,12 @@ ZOOM_RANGE = (0x0000, 0x4000)  # wide … tele, counts
 DEFAULT_FOCUS_SPEED_COUNTS_S = (FOCUS_RANGE[1] - FOCUS_RANGE[0]) / 1.5
 DEFAULT_ZOOM_SPEED_COUNTS_S = (ZOOM_RANGE[1] - ZOOM_RANGE[0]) / 2.0
 DEFAULT_POWER_ON_S = 0.1  # standby → on (real cameras take seconds; short keeps tests fast)
-VENDOR_SONY = 0x0020
-MODEL_EVI_D100 = 0x040E
+# VersionInq identity: Sony's vendor ID is 0x0001; model codes as controllers' tables know them
+# (0x040D EVI-D100, 0x040E EVI-D70), so a controller that picks its tables from the model gets
+# the camera we simulate.
+VENDOR_SONY = 0x0001
+MODEL_EVI_D100 = 0x040D
+MODEL_EVI_D70 = 0x040E
 DEFAULT_ROM = 0x0200
 # Packets waiting for their field. A burst larger than this is a controller bug; the camera loses
 # the overflow like a real UART receive buffer would.
@@ -398,6 +402,11 @@ class ViscaDevice:
             return
         if len(raw) > codec.MAX_PACKET_LEN:
             self._send(ErrorReply(0, ErrorCode.MESSAGE_LENGTH), t)
+            return
+        if len(raw) == 3 and raw[1] >> 4 == 0x2 and raw[1] & 0x0F not in codec.SOCKETS:
+            # Cancel of a socket this camera does not have: "no socket" for that socket number
+            # (z0 6y 05 FF), as the VISCA spec answers it, not a syntax error.
+            self._send(ErrorReply(raw[1] & 0x0F, ErrorCode.NO_SOCKET), t)
             return
         try:
             packet = Packet.from_bytes(raw)

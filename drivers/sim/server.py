@@ -13,8 +13,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import logging
 import os
+import struct
+import termios
 import time
 import tty
 from collections import deque
@@ -34,6 +37,12 @@ READ_CHUNK = 4096  # bytes per os.read of the pty master; more than a second of 
 # Bytes the pty would not take yet (nobody reads the slave). A real UART sends into the void; we
 # keep a little and then drop the oldest, so a stalled reader cannot make the server grow.
 TX_BACKLOG_MAX_BYTES = 8192
+# Output nobody has read for this long when a controller writes was meant for nobody (the
+# power-up Network Change before anyone opened the port, replies to a controller that has since
+# closed it): on a real RS-232 line nobody listens to, those bytes are simply lost. An attached
+# controller reads within milliseconds (pyserial blocks in read; its timeout is ~50 ms).
+STALE_OUTPUT_S = 0.5
+SENT_LOG_MAX = 256  # recent writes remembered to date the unread bytes
 
 
 class SimCameraServer:
@@ -46,6 +55,7 @@ class SimCameraServer:
         faults: Faults | FaultSpec | str | None = None,
         link_path: str | os.PathLike[str] | None = None,
         state: CameraState | None = None,
+        stale_output_s: float = STALE_OUTPUT_S,
     ) -> None:
         self.config = config or DeviceConfig()
         self.faults = faults if isinstance(faults, Faults) else Faults(faults)
@@ -62,6 +72,11 @@ class SimCameraServer:
         self._writer_armed = False
         self._port_task: asyncio.Task[None] | None = None
         self.dropped_tx_bytes = 0
+        self.stale_output_s = stale_output_s
+        self.discarded_stale_bytes = 0
+        self._sent_log: deque[tuple[float, int]] = deque(maxlen=SENT_LOG_MAX)
+        self._stale_timer: asyncio.TimerHandle | None = None
+        self.output_discarded = asyncio.Event()  # set whenever stale output was dropped
         self.port_generation = 0  # bumped by every (re)open
         self._generation_waiters: list[tuple[int, asyncio.Future[None]]] = []
         self.faults.bind(self)
@@ -193,6 +208,10 @@ class SimCameraServer:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
+        if self._stale_timer is not None:
+            self._stale_timer.cancel()
+            self._stale_timer = None
+        self._sent_log.clear()
         if self._master is not None and self._loop is not None:
             self._loop.remove_reader(self._master)
             if self._writer_armed:
@@ -218,8 +237,45 @@ class SimCameraServer:
         except OSError as exc:  # EIO while no slave is open: nothing to read
             logger.debug("sim camera: pty read failed: %s", exc)
             return
-        self.device.receive(data, self._clock())
+        now = self._clock()
+        self._discard_stale_output(now)
+        self.device.receive(data, now)
         self._pump()
+
+    def _check_stale(self) -> None:
+        self._stale_timer = None
+        self._discard_stale_output(self._clock())
+        if self._sent_log and self._loop is not None:
+            # Bytes still unread but younger than the limit: look again when they are not.
+            due = self._sent_log[0][0] + self.stale_output_s - self._clock()
+            self._stale_timer = self._loop.call_later(max(due, 0.0), self._check_stale)
+
+    def _discard_stale_output(self, now: float) -> None:
+        """Drop output still unread in the pty if it waited longer than ``stale_output_s``."""
+        if self._slave is None:
+            return
+        try:
+            raw = fcntl.ioctl(self._slave, termios.TIOCINQ, b"\0\0\0\0")
+        except OSError:
+            return
+        unread = struct.unpack("i", raw)[0]
+        if unread <= 0:
+            self._sent_log.clear()
+            return
+        # The unread bytes are the last ``unread`` written: find when the oldest of them went.
+        counted = 0
+        oldest = now
+        for when, size in reversed(self._sent_log):
+            counted += size
+            oldest = when
+            if counted >= unread:
+                break
+        if now - oldest >= self.stale_output_s:
+            termios.tcflush(self._slave, termios.TCIFLUSH)
+            self.discarded_stale_bytes += unread
+            self.output_discarded.set()
+            self._sent_log.clear()
+            logger.debug("sim camera: discarded %d byte(s) nobody read", unread)
 
     def _pump(self) -> None:
         """Run the device up to now, write what it sent, and re-arm the timer."""
@@ -252,6 +308,9 @@ class SimCameraServer:
                 self._backlog.clear()
                 break
             del self._backlog[:written]
+            self._sent_log.append((self._clock(), written))
+            if self._stale_timer is None and self._loop is not None:
+                self._stale_timer = self._loop.call_later(self.stale_output_s, self._check_stale)
         if len(self._backlog) > TX_BACKLOG_MAX_BYTES:
             excess = len(self._backlog) - TX_BACKLOG_MAX_BYTES
             del self._backlog[:excess]
