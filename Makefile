@@ -31,6 +31,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/python -m dffd.warmup
 	touch $(STAMP)
 
 # mosquitto (a real broker for the MQTT tests) and systemd-analyze (unit verification) come
