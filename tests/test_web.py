@@ -137,6 +137,17 @@ async def test_loopback_without_token_needs_none(server: DashboardServer) -> Non
         page = await r.text()
     assert '<canvas id="video"' in page
     assert "http" not in page.replace("http-equiv", "")  # nothing loaded from elsewhere
+    # DNS rebinding: another name pointed at 127.0.0.1 is not let in without a token.
+    async with (
+        aiohttp.ClientSession() as http,
+        http.get(server.url + "/api/status", headers={"Host": f"evil.example:{server.port}"}) as r,
+    ):
+        assert r.status == 403
+    async with (
+        aiohttp.ClientSession() as http,
+        http.get(server.url + "/api/status", headers={"Host": f"localhost:{server.port}"}) as r,
+    ):
+        assert r.status == 200
 
 
 # -- commands ---------------------------------------------------------------------------------

@@ -10,7 +10,8 @@ Routes (all behind the token when one is set):
   the same reply object ``…/cmd/reply`` carries (HTTP 200 when ``ok``, 400 when refused);
 - ``GET /metrics`` Prometheus text format.
 
-Safe by default: without a token the server binds loopback only; any other address needs a
+Safe by default: without a token the server binds loopback only (and answers only requests
+addressed to a loopback name, against DNS rebinding); any other address needs a
 bearer token (header ``Authorization: Bearer …``, or the cookie that ``/?token=…`` sets for a
 browser). Commands must be ``application/json`` and same-origin, so another web page open in the
 operator's browser cannot send them.
@@ -239,7 +240,16 @@ class DashboardServer:
         handler: Callable[[web.Request], Awaitable[web.StreamResponse]],
     ) -> web.StreamResponse:
         token = self.settings.token
-        if token is None or self._authorized(request, token):
+        if token is None:
+            if not _loopback_host(request.host):
+                # Without a token only loopback may talk to us; a page whose DNS name was
+                # rebound to 127.0.0.1 still sends its own name as Host.
+                raise web.HTTPForbidden(
+                    text=f"dffd dashboard: Host {request.host!r} refused; without web.token_file "
+                    "the dashboard answers only to localhost / 127.0.0.1 / [::1]\n"
+                )
+            return await handler(request)
+        if self._authorized(request, token):
             return await handler(request)
         given = request.query.get("token")
         if request.path == "/" and given is not None and hmac.compare_digest(given, token):
@@ -418,6 +428,11 @@ class DashboardServer:
         response = web.Response(body=body)
         response.headers["Content-Type"] = CONTENT_TYPE
         return response
+
+
+def _loopback_host(host_header: str) -> bool:
+    host = urlsplit(f"//{host_header}").hostname
+    return host is not None and is_loopback(host)
 
 
 def _dumps(obj: Any) -> str:
