@@ -23,8 +23,9 @@ import numpy as np
 
 from dffd.config import ConfigError, load_config
 from dffd.core.lens import Lens, LensError
-from dffd.core.pipeline import ESTIMATORS, Estimate, Pipeline, PipelineConfig
+from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
 from dffd.recording import RecordingError, RecordingReader, Truth
+from dffd.step import CoreStep
 from dffd.wiring import pipeline_config
 
 logger = logging.getLogger(__name__)
@@ -72,7 +73,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--roi",
         default=None,
         metavar="X,Y,W,H",
-        help="acquire the target inside this ROI instead of automatically",
+        help="acquire the target inside this ROI instead of automatically (default: [target] roi)",
     )
 
 
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         config = replace(config, best=args.best)
     settle = config.settle_s if args.settle is None else args.settle
     try:
-        result = replay(reader, lens, config, roi=roi)
+        result = replay(reader, lens, config, roi=roi if roi is not None else settings.target.roi)
         _write_jsonl(args.out, result.lines)
     except (RecordingError, OSError) as exc:
         print(f"dffd replay: {exc}", file=sys.stderr)
@@ -155,13 +156,13 @@ def replay(
     config: PipelineConfig,
     roi: tuple[int, int, int, int] | None = None,
 ) -> ReplayResult:
-    """Run a :class:`Pipeline` over ``(Frame, FrameTag)`` pairs; collect JSON-ready lines."""
-    pipeline = Pipeline(config, lens)
+    """Run the core step over ``(Frame, FrameTag)`` pairs; collect JSON-ready lines."""
+    core = CoreStep.build(config, lens)
     if roi is not None:
-        pipeline.acquire_roi(*roi)
+        core.pipeline.acquire_roi(*roi)
     result = ReplayResult()
     for frame, tag in frames:
-        out = pipeline.process(frame, tag)
+        out = core.step(frame, tag).output
         if out.measurement is not None:
             if out.measurement.accepted:
                 result.accepted += 1

@@ -12,11 +12,21 @@ from typing import TYPE_CHECKING
 
 from dffd.core.pipeline import PipelineConfig
 from dffd.scheduler import SchedulerConfig, pixel_offset_to_deg
+from dffd.step import CoreStep
 
 if TYPE_CHECKING:
     from dffd.config import DffdConfig
+    from dffd.core.lens import Lens
 
-__all__ = ["pipeline_config", "scheduler_config"]
+__all__ = ["build_core", "pipeline_config", "scheduler_config"]
+
+
+def build_core(settings: DffdConfig, lens: Lens) -> CoreStep:
+    """The service's estimation core on ``lens``, holding ``[target] roi`` if one is given."""
+    core = CoreStep.build(pipeline_config(settings), lens)
+    if settings.target.roi is not None:
+        core.pipeline.acquire_roi(*settings.target.roi)
+    return core
 
 
 def scheduler_config(

@@ -40,8 +40,8 @@ import numpy.typing as npt
 from dffd.core.contour import outward_normals, resample_closed
 from dffd.core.focus import focus_cost
 from dffd.core.lens import Lens
-from dffd.core.pipeline import Pipeline
 from dffd.core.types import FrameTag
+from dffd.step import CoreStep
 from drivers.frames import Frame
 
 TARGET_MS = 2.0
@@ -87,7 +87,8 @@ class _Bench:
         self.fps = session.fps
         self.frame_size = session.frame_size
         self.lens = Lens.from_toml(session.lens_path)
-        self.pipeline = Pipeline(pipeline_config(self.scenario, daemon_config()), self.lens)
+        self.core_step = CoreStep.build(pipeline_config(self.scenario, daemon_config()), self.lens)
+        self.pipeline = self.core_step.pipeline
         self.frames = frames
         self.seen = 0
         self.core: dict[str, list[float]] = {"track": [], "burst": [], "transit": []}
@@ -110,7 +111,7 @@ class _Bench:
         self.seen += 1
         timed = WARMUP_FRAMES < self.seen <= WARMUP_FRAMES + self.frames
         t0 = time.thread_time_ns()
-        out = self.pipeline.process(frame, tag)
+        out = self.core_step.step(frame, tag).output
         dt_ms = (time.thread_time_ns() - t0) / 1e6
         if not timed:
             return

@@ -8,9 +8,9 @@ A discrete-event loop over one virtual clock (injected into the simulator's
   :class:`~dffd.scheduler.Scheduler` hears Completions and positions when they would arrive;
 * the scheduler's wake-ups → its actions are encoded and written to the device;
 * a frame is *delivered* ``exposure/2 + latency`` after its exposure mid-time → the simulator
-  renders it at its exposure time (``render(t)``), the scheduler tags it, the
-  :class:`~dffd.core.pipeline.Pipeline` processes it, and the core's feedback (σ, burst plan,
-  centroid) goes back to the scheduler.
+  renders it at its exposure time (``render(t)``), the scheduler tags it, the core processes
+  it with :meth:`dffd.step.CoreStep.step` (the daemon's estimator thread calls the same step),
+  and the core's feedback (σ, burst plan, centroid) goes back to the scheduler.
 
 Nothing waits in real time, so minutes of scenario take seconds. The estimator sees only frames,
 tags and the lens table; the bench alone reads the simulator's ground truth to score.
@@ -28,14 +28,13 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
 import numpy as np
 
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
-from dffd.core.pipeline import Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.pipeline import PipelineConfig, PipelineOutput
 from dffd.core.types import FrameTag
 from dffd.scheduler import (
     Action,
@@ -45,6 +44,7 @@ from dffd.scheduler import (
     SchedulerConfig,
     depth_rate_limit,
 )
+from dffd.step import CoreStep, StepResult
 from dffd.wiring import pipeline_config as service_pipeline_config
 from dffd.wiring import scheduler_config as service_scheduler_config
 from drivers.frames import Frame
@@ -77,15 +77,6 @@ SWEEP_WINDOW_MARGIN_PX = 12
 SWEEP_INITIAL_HALF_PX = 120
 
 
-@dataclass
-class _Feedback:
-    """What the loop tells the scheduler after a frame."""
-
-    sigma: float | None
-    plan: tuple[int, int, int] | None
-    centroid: tuple[float, float] | None
-
-
 def run_session(
     scenario: Scenario,
     case: str,
@@ -96,12 +87,17 @@ def run_session(
     duration_s: float | None = None,
     progress: Progress | None = None,
     recorder: FrameSink | None = None,
+    on_step: Callable[[StepResult], object] | None = None,
 ) -> RunResult:
-    """Run one case of ``scenario`` with ``seed`` in virtual time and return what was measured."""
+    """Run one case of ``scenario`` with ``seed`` in virtual time and return what was measured.
+
+    ``on_step`` sees every core step (output and scheduler feedback) of the dffd policy.
+    """
     duration = scenario.duration_s if duration_s is None else duration_s
     shape = "aruco" if policy == "aruco" else scenario.target.shape
     session = build_session(scenario, trajectory, seed, target_shape=shape)
     runner = _Runner(scenario, case, seed, session, policy, duration, progress, recorder)
+    runner.on_step = on_step
     return runner.run()
 
 
@@ -173,11 +169,13 @@ class _Runner:
         self.policy = policy
         self.progress = progress
         self.recorder = recorder
+        self.on_step: Callable[[StepResult], object] | None = None
         self.lens = Lens.from_toml(session.lens_path)
         self.device = ViscaDevice(session.state, session.device_config)
         self.link = VirtualLink(self.device)
         dcfg = daemon_config()
-        self.pipeline = Pipeline(pipeline_config(scenario, dcfg), self.lens)
+        self.core = CoreStep.build(pipeline_config(scenario, dcfg), self.lens)
+        self.pipeline = self.core.pipeline
         self.sched_config = scheduler_config(session, self.lens, dcfg, scenario.scheduler)
         self.scheduler = Scheduler(self.sched_config)
         self.scheduler.set_track_focus(
@@ -312,31 +310,12 @@ class _Runner:
         if self.recorder is not None:
             self.recorder.add(frame, tag, truth_z)
         c0 = time.thread_time()
-        out = self.pipeline.process(frame, tag)
+        step = self.core.step(frame, tag)
         res.core_cpu_s.append(time.thread_time() - c0)
-        self._score(out, frame, tag, truth)
-        fb = self._feedback(out, tag)
-        self.scheduler.on_estimate(
-            t_mid,
-            sigma_m=fb.sigma,
-            plan=fb.plan,
-            centroid_px=fb.centroid,
-            pan_deg=tag.pan_deg,
-            tilt_deg=tag.tilt_deg,
-        )
-
-    def _feedback(self, out: PipelineOutput, tag: FrameTag) -> _Feedback:
-        # Exactly what dffd.daemon.app's estimator thread reports to the scheduler.
-        obs = out.observation
-        centroid = obs.centroid if obs is not None and obs.ok else None
-        sigma: float | None = None
-        plan: tuple[int, int, int] | None = None
-        if self.pipeline.state == "tracking":
-            pred = self.pipeline.predicted_depth()
-            sigma = None if pred is None else pred[1]
-            if tag.focus_counts is not None:
-                plan = self.pipeline.plan_burst(tag.focus_counts)
-        return _Feedback(sigma, plan, centroid)
+        self._score(step.output, frame, tag, truth)
+        step.feedback.apply(self.scheduler)
+        if self.on_step is not None:
+            self.on_step(step)
 
     def _score(self, out: PipelineOutput, frame: Frame, tag: FrameTag, truth: FrameTruth) -> None:
         truth_z = truth.z_m

@@ -13,6 +13,7 @@ from dffd.core.pipeline import PipelineOutput
 from dffd.core.types import FrameTag
 from dffd.daemon.app import EstimatorResult, EstimatorThread, RateMeter
 from dffd.daemon.console import ConsoleSnapshot, render
+from dffd.step import CoreStep
 from drivers.frames import Frame
 
 # The estimator thread hands results over within milliseconds; 5 s only bounds a broken test.
@@ -57,7 +58,7 @@ def test_estimator_queue_drops_oldest_and_never_blocks_capture() -> None:
         if result.frame_index == 9:
             done.set()
 
-    est = EstimatorThread(pipeline, deliver, queue_max=3)  # type: ignore[arg-type]
+    est = EstimatorThread(CoreStep(pipeline), deliver, queue_max=3)  # type: ignore[arg-type]
     est.start()
     tag = FrameTag("track", 5000, 0.0, 0.0)
     est.submit(_frame(0), tag)
@@ -98,7 +99,7 @@ def test_a_frame_or_command_that_raises_does_not_stop_the_estimator() -> None:
         if result.frame_index == 2:
             done.set()
 
-    est = EstimatorThread(pipeline, deliver)  # type: ignore[arg-type]
+    est = EstimatorThread(CoreStep(pipeline), deliver)  # type: ignore[arg-type]
     est.start()
     tag = FrameTag("track", 5000, 0.0, 0.0)
     future = est.call(lambda p: p.set_known_size(-1.0) or None)  # type: ignore[attr-defined]
@@ -191,7 +192,7 @@ async def test_a_core_command_the_busy_estimator_cannot_apply_is_rejected_with_a
 
     monkeypatch.setattr(app, "CORE_COMMAND_TIMEOUT_S", 0.05)  # shrunk, not slept on
     pipeline = _BlockingPipeline()
-    est = EstimatorThread(pipeline, lambda _r: None)  # type: ignore[arg-type]
+    est = EstimatorThread(CoreStep(pipeline), lambda _r: None)  # type: ignore[arg-type]
     est.start()
     try:
         est.submit(_frame(0), FrameTag("track", 5000, 0.0, 0.0))

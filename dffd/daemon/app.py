@@ -67,7 +67,7 @@ from dffd.config import ConfigError, DffdConfig, load_config, missing_files
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
-from dffd.core.pipeline import Pipeline, PipelineOutput
+from dffd.core.pipeline import Pipeline
 from dffd.core.types import FrameTag
 from dffd.daemon.console import Console, ConsoleSnapshot
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
@@ -87,7 +87,8 @@ from dffd.scheduler import (
     SchedulerConfig,
     depth_rate_limit,
 )
-from dffd.wiring import pipeline_config, scheduler_config
+from dffd.step import CoreStep, StepResult
+from dffd.wiring import build_core, scheduler_config
 from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.visca.camera import Camera, SpeedCode, profile_for
 from drivers.visca.errors import ViscaError
@@ -217,14 +218,13 @@ class _Work:
 class EstimatorResult:
     """One processed frame, handed back to the event loop."""
 
-    frame_index: int
-    t: float
-    tag: FrameTag
-    output: PipelineOutput
-    sigma_m: float | None
-    plan: tuple[int, int, int] | None
-    centroid_px: tuple[float, float] | None
-    cpu_s: float
+    step: StepResult
+    cpu_s: float  # estimator thread CPU time spent on the frame
+
+    @property
+    def frame_index(self) -> int:
+        """Index of the processed frame."""
+        return self.step.frame_index
 
 
 CoreCommand = Callable[[Pipeline], dict[str, Any] | None]
@@ -235,11 +235,11 @@ class EstimatorThread:
 
     def __init__(
         self,
-        pipeline: Pipeline,
+        core: CoreStep,
         deliver: Callable[[EstimatorResult], object],
         queue_max: int = FRAME_QUEUE_MAX,
     ) -> None:
-        self.pipeline = pipeline
+        self.core = core
         self._deliver = deliver
         self._frames: deque[_Work] = deque(maxlen=queue_max)
         self._commands: deque[tuple[CoreCommand, Future[dict[str, Any] | None]]] = deque(
@@ -295,7 +295,7 @@ class EstimatorThread:
                 work = self._frames.popleft() if self._frames else None
             for command, future in commands:
                 try:
-                    future.set_result(command(self.pipeline))
+                    future.set_result(command(self.core.pipeline))
                 except Exception as exc:  # noqa: BLE001 - a bad command is answered, never fatal
                     future.set_exception(exc)
             if work is not None:
@@ -306,28 +306,9 @@ class EstimatorThread:
 
     def _process(self, work: _Work) -> EstimatorResult:
         c0 = time.thread_time()
-        pipeline = self.pipeline
-        if pipeline.state != "tracking" and work.tag.role == "transit":
-            # Acquire only on frames exposed at a stationary focus: a contour started on a frame
-            # blurred by focus travel (the start-up move, a burst) is lost a few frames later.
-            out = PipelineOutput(pipeline.state, None, None, None)
-        else:
-            out = pipeline.process(work.frame, work.tag)
-        obs = out.observation
-        centroid = obs.centroid if obs is not None and obs.ok else None
-        sigma: float | None = None
-        plan: tuple[int, int, int] | None = None
-        if pipeline.state == "tracking":
-            pred = pipeline.predicted_depth()
-            sigma = None if pred is None else pred[1]
-            if work.tag.focus_counts is not None:
-                plan = pipeline.plan_burst(work.tag.focus_counts)
+        step = self.core.step(work.frame, work.tag)
         self.processed += 1
-        return EstimatorResult(
-            work.frame.index, work.frame.t, work.tag, out, sigma, plan,
-            None if centroid is None else (float(centroid[0]), float(centroid[1])),
-            time.thread_time() - c0,
-        )  # fmt: skip
+        return EstimatorResult(step, time.thread_time() - c0)
 
 
 # -- rates ----------------------------------------------------------------------------------------
@@ -484,12 +465,9 @@ class Daemon:
                     self.topics,
                     on_command=self._on_command,
                 )
-                pipeline = Pipeline(pipeline_config(self.config), lens)
-                if cfg.target.roi is not None:
-                    pipeline.acquire_roi(*cfg.target.roi)
                 loop = asyncio.get_running_loop()
                 estimator = EstimatorThread(
-                    pipeline, lambda r: loop.call_soon_threadsafe(self._on_result, r)
+                    build_core(cfg, lens), lambda r: loop.call_soon_threadsafe(self._on_result, r)
                 )
                 estimator.start()
                 self._parts.estimator = estimator
@@ -834,7 +812,7 @@ class Daemon:
         while True:
             result = await self._results.get()
             now = time.monotonic()
-            out = result.output
+            out = result.step.output
             self._state = out.state
             if out.measurement is not None:
                 if out.measurement.accepted:
@@ -855,16 +833,10 @@ class Daemon:
                 self._last_size = payload_e.size_m
                 log.append("estimate", payload_e)
                 publisher.publish(payload_e)
-            if result.plan is not None:
-                self._spacing = max(1, (max(result.plan) - min(result.plan)) // 2)
-            sched.on_estimate(
-                result.t,
-                sigma_m=result.sigma_m,
-                plan=result.plan,
-                centroid_px=result.centroid_px,
-                pan_deg=result.tag.pan_deg,
-                tilt_deg=result.tag.tilt_deg,
-            )
+            feedback = result.step.feedback
+            if feedback.plan is not None:
+                self._spacing = max(1, (max(feedback.plan) - min(feedback.plan)) // 2)
+            feedback.apply(sched)
             self._wake.set()
 
     async def _status_loop(self) -> None:
