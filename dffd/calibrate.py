@@ -307,15 +307,13 @@ class SimRig:
             int(self.config.lens.focus_near_counts),
         )
         self._frame = 0  # frame index of the next render
-        self._clock = _Clock()
-        self._source: Any = None
-        self._state: Any = None
+        self._rig: Any = None  # drivers.sim.rig.SimCamera of the current target placement
         self._z_m = 3.0
 
     async def place_target(self, z_m: float) -> None:
         """A fresh simulated session with the target at ``z_m``."""
         self._z_m = z_m
-        self._source = None
+        self._rig = None
 
     async def frame_at(self, counts: int, settle_frames: int) -> Image:
         """The lens is at ``counts`` well before the next exposure (virtual time: no wait)."""
@@ -344,25 +342,24 @@ class SimRig:
     def _render(self, k: int) -> Image:
         source, _ = self._session()
         self._frame = k + 1
-        self._clock.t = source.frame_time(k) + 1.0
+        # Render once the exposure is well over (the frames come in order: time never goes back).
+        self._rig.virtual_clock.set(source.frame_time(k) + 1.0)
         image = source.render_frame(k).image
         gray: Image = image if image.ndim == 2 else image[..., 1]
         return gray
 
     def _session(self) -> tuple[Any, Any]:
-        if self._source is None:
+        if self._rig is None:
             from drivers.sim.config import with_overrides
-            from drivers.sim.source import SimFrameSource, camera_state_for
+            from drivers.sim.rig import build_sim_camera
 
             cfg = with_overrides(
                 self.config,
                 {"world.trajectory": {"kind": "static", "position_m": (0.0, 0.0, self._z_m)}},
             )
-            self._clock = _Clock()
-            self._state = camera_state_for(cfg, clock=self._clock)
-            self._source = SimFrameSource.from_config(cfg, self._state, t0=1.0)
+            self._rig = build_sim_camera(cfg, virtual_start_s=0.0, t0=1.0)
             self._frame = 0
-        return self._source, self._state
+        return self._rig.source, self._rig.state
 
 
 class LabRig:
@@ -536,14 +533,6 @@ async def _costs(rig: Rig, settings: npt.NDArray[np.float64], settle: int) -> np
         if cost is not None:
             out[i] = cost[0]
     return out
-
-
-class _Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def _lens_meta(optics: object, zoom_counts: int) -> dict[str, object]:

@@ -26,38 +26,31 @@ from drivers.sim.config import (
     WorldConfig,
     load_sim_camera_config,
 )
+from drivers.sim.device import VirtualClock
 from drivers.sim.resources import reference_camera_file
-from drivers.sim.source import SimFrameSource, camera_state_for
+from drivers.sim.rig import build_sim_camera
+from drivers.sim.source import SimFrameSource
 from drivers.sim.state import CameraState
-from drivers.sim.world import World
 
 BUDGET_MS = 5.0  # issue 3
 
 
-class _Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
-
-
-Setup = Callable[[SimFrameSource, CameraState, _Clock], None]
+Setup = Callable[[SimFrameSource, CameraState, VirtualClock], None]
 
 
 def _focus(z: float) -> Setup:
-    def setup(source: SimFrameSource, state: CameraState, clock: _Clock) -> None:
-        state.focus.jump(source.optics.focus_counts_for_depth(z), clock.t)
+    def setup(source: SimFrameSource, state: CameraState, clock: VirtualClock) -> None:
+        state.focus.jump(source.optics.focus_counts_for_depth(z), clock())
 
     return setup
 
 
-def _far(source: SimFrameSource, state: CameraState, clock: _Clock) -> None:
-    state.focus.jump(source.optics.lens.focus_far_counts, clock.t)
+def _far(source: SimFrameSource, state: CameraState, clock: VirtualClock) -> None:
+    state.focus.jump(source.optics.lens.focus_far_counts, clock())
 
 
-def _sweeping(source: SimFrameSource, state: CameraState, clock: _Clock) -> None:
-    state.focus.move_to(0x8000, speed=2000.0, t=clock.t)  # turns throughout the run
+def _sweeping(source: SimFrameSource, state: CameraState, clock: VirtualClock) -> None:
+    state.focus.move_to(0x8000, speed=2000.0, t=clock())  # turns throughout the run
 
 
 def _static(z: float) -> WorldConfig:
@@ -89,14 +82,13 @@ CASES: dict[str, tuple[WorldConfig, Setup]] = {
 
 def run_case(config: SimCameraConfig, world: WorldConfig, setup: Setup, frames: int) -> list[float]:
     """Render ``frames`` frames in lock-step; return per-frame wall times in ms."""
-    clock = _Clock()
-    state = camera_state_for(config, clock=clock)
-    source = SimFrameSource.from_config(config, state, World.from_config(world))
+    rig = build_sim_camera(config.model_copy(update={"world": world}), virtual_start_s=0.0)
+    clock, state, source = rig.virtual_clock, rig.state, rig.source
     setup(source, state, clock)
     source.render_frame(0)  # warm the PSF cache as a running camera would
     times = []
     for index in range(1, frames + 1):
-        clock.t = source.delivery_time(index)
+        clock.set(source.delivery_time(index))
         start = time.perf_counter()
         source.render_frame(index)
         times.append(1e3 * (time.perf_counter() - start))

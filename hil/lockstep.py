@@ -32,6 +32,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
+from dffd.actuation import report_done, report_failed
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.core.pipeline import PipelineConfig, PipelineOutput
@@ -48,8 +49,8 @@ from dffd.step import CoreStep, StepResult
 from dffd.wiring import pipeline_config as service_pipeline_config
 from dffd.wiring import scheduler_config as service_scheduler_config
 from drivers.frames import Frame
-from drivers.sim.device import ViscaDevice
 from drivers.sim.source import FrameTruth
+from drivers.visca.camera import profile_for
 from hil.baselines import (
     ArucoBaseline,
     find_blob,
@@ -61,7 +62,7 @@ from hil.baselines import (
 from hil.results import BurstRecord, RunResult
 from hil.scenario import Scenario, TrajectorySpec
 from hil.simbuild import T_FIRST_FRAME_S, SimSession, build_session
-from hil.vlink import LinkEvent, VirtualLink
+from hil.vlink import Outcome, VirtualLink
 
 logger = logging.getLogger(__name__)
 
@@ -171,9 +172,11 @@ class _Runner:
         self.recorder = recorder
         self.on_step: Callable[[StepResult], object] | None = None
         self.lens = Lens.from_toml(session.lens_path)
-        self.device = ViscaDevice(session.state, session.device_config)
-        self.link = VirtualLink(self.device)
+        self.device = session.rig.device()
         dcfg = daemon_config()
+        # The driver's profile of the configured model converts degrees and speed codes.
+        self.profile = profile_for(dcfg.camera.model)
+        self.link = VirtualLink(self.device, self.profile)
         self.core = CoreStep.build(pipeline_config(scenario, dcfg), self.lens)
         self.pipeline = self.core.pipeline
         self.sched_config = scheduler_config(session, self.lens, dcfg, scenario.scheduler)
@@ -250,11 +253,13 @@ class _Runner:
             if self.policy == "sweep" and isinstance(action, FocusMove | FocusInquiry):
                 self._swallow_focus_action(action, now)
                 continue
-            self.link.send(action, now)
+            for outcome in self.link.send(action, now):
+                self._dispatch(outcome)
         if self.policy == "sweep":
             move = self._sweep.next_move(now)
             if move is not None:
-                self.link.send(move, now)
+                for outcome in self.link.send(move, now):
+                    self._dispatch(outcome)
 
     def _swallow_focus_action(self, action: Action, now: float) -> None:
         # In the sweep pass the scheduler only steers pan/tilt: its single initial focus move is
@@ -262,34 +267,18 @@ class _Runner:
         if isinstance(action, FocusMove):
             self.scheduler.on_focus_completed(action.move_id, now)
 
-    def _dispatch(self, event: LinkEvent) -> None:
-        s = self.scheduler
-        match event.kind:
-            case "focus_done":
-                assert event.move_id is not None
-                if self.policy == "sweep":
-                    self._sweep.on_done(event.move_id, event.t)
-                else:
-                    s.on_focus_completed(event.move_id, event.t)
-            case "focus_failed":
-                if event.move_id is None:
-                    s.on_focus_inquiry_failed(event.t)
-                elif self.policy == "sweep":
-                    self._sweep.on_failed(event.move_id, event.t)
-                else:
-                    s.on_focus_failed(event.move_id, event.t)
-            case "focus_position":
-                assert event.counts is not None
-                s.on_focus_position(event.t, event.counts)
-            case "pt_done":
-                s.on_pan_tilt_done(event.t)
-            case "pt_failed":
-                s.on_pan_tilt_failed(event.t)
-            case "pt_position":
-                assert event.pan_deg is not None
-                assert event.tilt_deg is not None
-                s.on_pan_tilt_position(event.t, event.pan_deg, event.tilt_deg)
-                s.on_pan_tilt_done(event.t)
+    def _dispatch(self, outcome: Outcome) -> None:
+        action = outcome.action
+        if self.policy == "sweep" and isinstance(action, FocusMove):
+            # The sweep's own focus moves (the scheduler's were swallowed, see _act).
+            if outcome.ok:
+                self._sweep.on_done(action.move_id, outcome.t)
+            else:
+                self._sweep.on_failed(action.move_id, outcome.t)
+        elif outcome.ok:
+            report_done(self.scheduler, action, outcome.t, outcome.answer, self.profile)
+        else:
+            report_failed(self.scheduler, action, outcome.t)
 
     # -- frames --------------------------------------------------------------------------------
     def _frame(self, index: int) -> None:

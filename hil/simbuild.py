@@ -27,7 +27,8 @@ from drivers.sim.config import (
 from drivers.sim.device import DeviceConfig
 from drivers.sim.optics import Optics
 from drivers.sim.resources import reference_camera_file
-from drivers.sim.source import FrameTruth, SimFrameSource, camera_state_for
+from drivers.sim.rig import SimCamera, build_sim_camera
+from drivers.sim.source import FrameTruth, SimFrameSource
 from drivers.sim.state import CameraState
 from drivers.sim.world import World
 from hil.scenario import Scenario, TrajectorySpec
@@ -39,28 +40,38 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 T_FIRST_FRAME_S = 0.5
 
 
-class VirtualClock:
-    """A settable clock for the camera state (virtual time never runs by itself)."""
-
-    def __init__(self, t: float = 0.0) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
-
-
 @dataclass
 class SimSession:
-    """One simulated camera + world, in virtual time."""
+    """One simulated camera + world in virtual time, and the estimator's lens table."""
 
-    config: SimCameraConfig
-    clock: VirtualClock
-    state: CameraState
-    source: SimFrameSource
-    world: World
-    device_config: DeviceConfig
+    rig: SimCamera
     lens_path: Path
     notes: list[str] = field(default_factory=list)
+
+    @property
+    def config(self) -> SimCameraConfig:
+        """The simulated camera's configuration."""
+        return self.rig.config
+
+    @property
+    def state(self) -> CameraState:
+        """The camera's mechanical state (on the virtual clock)."""
+        return self.rig.state
+
+    @property
+    def source(self) -> SimFrameSource:
+        """The renderer."""
+        return self.rig.source
+
+    @property
+    def world(self) -> World:
+        """The target and its trajectory."""
+        return self.rig.world
+
+    @property
+    def device_config(self) -> DeviceConfig:
+        """How the VISCA device model behaves."""
+        return self.rig.device_config
 
     @property
     def fps(self) -> float:
@@ -83,8 +94,8 @@ class SimSession:
         return self.source.frame_size
 
     def set_time(self, t: float) -> None:
-        """Advance the virtual clock."""
-        self.clock.t = t
+        """Advance the virtual clock (never backwards)."""
+        self.rig.virtual_clock.set(t)
 
     def frame_time(self, index: int) -> float:
         """Mid-exposure time of frame ``index``."""
@@ -145,20 +156,17 @@ def build_session(
     *,
     target_shape: str | None = None,
 ) -> SimSession:
-    """A ready simulated camera for one session, its clock at 0."""
+    """A ready simulated camera for one session, its virtual clock at 0."""
     config, notes = sim_camera_config(scenario, trajectory, seed, target_shape)
-    clock = VirtualClock(0.0)
-    state = camera_state_for(config, clock=clock)
-    world = World.from_config(config.world)
-    source = SimFrameSource.from_config(config, state, world, t0=T_FIRST_FRAME_S)
-    device_config = DeviceConfig(
-        pace=True, autofocus_at_power_up=False, network_change_at_power_up=False
-    )
+    # The bench starts the camera powered up in manual focus (the daemon's initialisation is
+    # not what it measures).
+    device = DeviceConfig(pace=True, autofocus_at_power_up=False, network_change_at_power_up=False)
+    rig = build_sim_camera(config, device=device, virtual_start_s=0.0, t0=T_FIRST_FRAME_S)
     lens_path = lens_file(scenario.camera.lens)
     if not lens_path.exists():
         lens_path = _temporary_lens_table(config)
         notes.append(f"{scenario.camera.lens} missing: the simulator's ground-truth table was used")
-    return SimSession(config, clock, state, source, world, device_config, lens_path, notes)
+    return SimSession(rig, lens_path, notes)
 
 
 def lens_file(name_or_path: str) -> Path:

@@ -229,7 +229,8 @@ async def test_scheduler_loop_yields_to_the_event_loop_when_a_wakeup_is_overdue(
     daemon = Daemon(load_config(None))
     sched = _OverdueScheduler()
     daemon.scheduler = sched  # type: ignore[assignment]
-    task = asyncio.create_task(daemon._scheduler_loop())
+    dispatched: list[object] = []
+    task = asyncio.create_task(daemon._scheduler_loop(dispatched.append))
     try:
         for _ in range(3):  # would never return here if the loop did not yield
             await asyncio.sleep(0)
@@ -241,6 +242,7 @@ async def test_scheduler_loop_yields_to_the_event_loop_when_a_wakeup_is_overdue(
         assert sched.calls - started >= 2
         assert sched.calls - started <= 51
         assert not task.done()  # still running, not ended by an exception
+        assert dispatched == []
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)

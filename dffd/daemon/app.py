@@ -69,28 +69,18 @@ from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
 from dffd.core.pipeline import Pipeline
 from dffd.core.types import FrameTag
+from dffd.daemon.actuators import Actuators
 from dffd.daemon.console import Console, ConsoleSnapshot
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
 from dffd.daemon.notify import Notifier
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
 from dffd.mqtt.topics import Topics
-from dffd.scheduler import (
-    Action,
-    FocusInquiry,
-    FocusMove,
-    PanTiltAbsolute,
-    PanTiltDrive,
-    PanTiltInquiry,
-    PanTiltStop,
-    Scheduler,
-    SchedulerConfig,
-    depth_rate_limit,
-)
+from dffd.scheduler import Action, Scheduler, SchedulerConfig, depth_rate_limit
 from dffd.step import CoreStep, StepResult
 from dffd.wiring import build_core, scheduler_config
 from drivers.frames import Frame, FrameSource, FrameSourceError
-from drivers.visca.camera import Camera, SpeedCode, profile_for
+from drivers.visca.camera import Camera, profile_for
 from drivers.visca.errors import ViscaError
 from drivers.visca.link import ViscaLink
 
@@ -126,7 +116,6 @@ SCHEDULER_IDLE_S = 0.5
 # Bounded queues (DESIGN §8: no unbounded queue anywhere).
 FRAME_QUEUE_MAX = 4  # estimator input: a few frames of slack at 30 fps, then drop the oldest
 RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
-ACTION_QUEUE_MAX = 4  # per worker; the scheduler keeps at most one action in flight per socket
 COMMAND_QUEUE_MAX = 16  # core commands waiting for the estimator thread
 # Estimator thread: waits for frames in slices so it notices a stop request.
 ESTIMATOR_POLL_S = 0.2
@@ -371,8 +360,6 @@ class Daemon:
         self._parts = _Parts()
         self._wake = asyncio.Event()
         self._results: asyncio.Queue[EstimatorResult] = asyncio.Queue(RESULT_QUEUE_MAX)
-        self._focus_q: asyncio.Queue[Action] = asyncio.Queue(ACTION_QUEUE_MAX)
-        self._pt_q: asyncio.Queue[Action] = asyncio.Queue(ACTION_QUEUE_MAX)
         self.results_dropped = 0
         self.payloads_skipped = 0  # core outputs that did not fit the MQTT schema
         self.frames = RateMeter()
@@ -395,7 +382,6 @@ class Daemon:
         self.publisher: Publisher | None = None
         self._sched_config: SchedulerConfig | None = None
         self._zoom: int | None = None
-        self._focus_failures = 0
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def main(self) -> int:
@@ -489,12 +475,16 @@ class Daemon:
                     camera = Camera(link, cfg.camera.address, profile_for(cfg.camera.model))
                     await self._initialize_camera(camera, lens)
                     self.camera = camera
+                    assert self.scheduler is not None
+                    actuators = Actuators(camera, self.scheduler, self._wake.set)
                     await source.start()
                     tasks = [
                         group.create_task(self._capture_loop(source), name="capture"),
-                        group.create_task(self._scheduler_loop(), name="scheduler"),
-                        group.create_task(self._focus_worker(camera), name="focus"),
-                        group.create_task(self._pan_tilt_worker(camera), name="pan-tilt"),
+                        group.create_task(
+                            self._scheduler_loop(actuators.dispatch), name="scheduler"
+                        ),
+                        group.create_task(actuators.run_focus(), name="focus"),
+                        group.create_task(actuators.run_pan_tilt(), name="pan-tilt"),
                         group.create_task(self._results_loop(), name="results"),
                         group.create_task(self._status_loop(), name="status"),
                     ]
@@ -562,19 +552,16 @@ class Daemon:
             assert cfg.camera.port is not None  # validated by the config
             return cfg.camera.port
         from drivers.sim.device import DeviceConfig
+        from drivers.sim.rig import build_sim_camera
         from drivers.sim.server import SimCameraServer
 
-        sim_cfg = self._sim_camera_config()
-        from drivers.sim.source import camera_state_for
-
-        state = camera_state_for(sim_cfg)
-        device = DeviceConfig(baud=cfg.camera.baudrate, pace=True)
-        server = SimCameraServer(device, state=state, faults=self.sim_faults)
+        rig = build_sim_camera(
+            self._sim_camera_config(), device=DeviceConfig(baud=cfg.camera.baudrate, pace=True)
+        )
+        server = SimCameraServer(rig.device_config, state=rig.state, faults=self.sim_faults)
         await stack.enter_async_context(server)
         self._parts.sim_server = server
-        self._sim_state = state
-        self._sim_device = device
-        self._sim_cfg = sim_cfg
+        self._sim_rig = rig
         _LOGGER.info("simulated camera on %s", server.path)
         return str(server.path)
 
@@ -611,17 +598,11 @@ class Daemon:
                     "capture.source = 'sim' needs camera.driver = 'sim' (the simulator renders "
                     "what its own camera sees); set capture.source = 'v4l2' for a real camera"
                 )
-            from drivers.sim.source import SimFrameSource
-
-            sim_source = SimFrameSource.from_config(self._sim_cfg, self._sim_state)
-            self._parts.source = sim_source
-            self._parts.truth_for = sim_source.truth_for
+            rig = self._sim_rig
+            self._parts.source = rig.source
+            self._parts.truth_for = rig.source.truth_for
             stack.push_async_callback(self._source_close)
-            return (
-                sim_source,
-                self._sim_cfg.capture.exposure_s,
-                self._sim_device.focus_speed_counts_s,
-            )
+            return rig.source, rig.config.capture.exposure_s, rig.device_config.focus_speed_counts_s
         source = _open_capture(cfg)
         self._parts.source = source
         stack.push_async_callback(self._source_close)
@@ -712,7 +693,7 @@ class Daemon:
             )
         )
 
-    async def _scheduler_loop(self) -> None:
+    async def _scheduler_loop(self, dispatch: Callable[[Action], object]) -> None:
         sched = self.scheduler
         assert sched is not None
         while True:
@@ -720,12 +701,7 @@ class Daemon:
             actions = sched.next_actions(now)
             for action in actions:
                 _LOGGER.debug("action at %.4f: %r", now, action)
-                focus = isinstance(action, FocusMove | FocusInquiry)
-                queue = self._focus_q if focus else self._pt_q
-                if queue.full():  # cannot happen with one action in flight; never block here
-                    _LOGGER.warning("action queue full; dropping %r", action)
-                    continue
-                queue.put_nowait(action)
+                dispatch(action)
             wake = sched.next_wakeup()
             delay = SCHEDULER_IDLE_S if wake is None else min(SCHEDULER_IDLE_S, wake - now)
             self._wake.clear()
@@ -739,61 +715,6 @@ class Daemon:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(delay):
                     await self._wake.wait()
-
-    async def _focus_worker(self, camera: Camera) -> None:
-        sched = self.scheduler
-        assert sched is not None
-        while True:
-            action = await self._focus_q.get()
-            try:
-                if isinstance(action, FocusMove):
-                    await camera.focus_direct(action.counts)
-                    sched.on_focus_completed(action.move_id, time.monotonic())
-                elif isinstance(action, FocusInquiry):
-                    counts = await camera.focus_position()
-                    sched.on_focus_position(time.monotonic(), counts)
-                if self._focus_failures:
-                    _LOGGER.info(
-                        "focus commands work again after %d failure(s)", self._focus_failures
-                    )
-                    self._focus_failures = 0
-            except (ViscaError, TimeoutError, ValueError) as exc:
-                # First failure of a run of failures at WARNING, the repeats at DEBUG.
-                level = logging.DEBUG if self._focus_failures else logging.WARNING
-                self._focus_failures += 1
-                _LOGGER.log(level, "focus action %r failed: %s", action, exc)
-                if isinstance(action, FocusMove):
-                    sched.on_focus_failed(action.move_id, time.monotonic())
-                else:
-                    sched.on_focus_inquiry_failed(time.monotonic())
-            self._wake.set()
-
-    async def _pan_tilt_worker(self, camera: Camera) -> None:
-        sched = self.scheduler
-        assert sched is not None
-        while True:
-            action = await self._pt_q.get()
-            try:
-                if isinstance(action, PanTiltDrive):
-                    await camera.pan_tilt_drive(action.pan_rate_deg_s, action.tilt_rate_deg_s)
-                elif isinstance(action, PanTiltAbsolute):
-                    # At the scheduler's speed codes: its head model moves at those speeds.
-                    await camera.pan_tilt_absolute(
-                        action.pan_deg,
-                        action.tilt_deg,
-                        SpeedCode(action.pan_speed),
-                        SpeedCode(action.tilt_speed),
-                    )
-                elif isinstance(action, PanTiltStop):
-                    await camera.pan_tilt_stop()
-                elif isinstance(action, PanTiltInquiry):
-                    pan, tilt = await camera.pan_tilt_position()
-                    sched.on_pan_tilt_position(time.monotonic(), pan, tilt)
-                sched.on_pan_tilt_done(time.monotonic())
-            except (ViscaError, TimeoutError, ValueError) as exc:
-                _LOGGER.debug("pan/tilt action %r failed: %s", action, exc)
-                sched.on_pan_tilt_failed(time.monotonic())
-            self._wake.set()
 
     def _on_result(self, result: EstimatorResult) -> None:
         """On the loop (via call_soon_threadsafe): queue a result, dropping the oldest."""
