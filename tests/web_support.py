@@ -16,7 +16,6 @@ from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 from pydantic import ValidationError
 
 from dffd.core.pipeline import Measurement as CoreMeasurement
@@ -25,7 +24,13 @@ from dffd.core.synthetic import DiscScene, StreamStep, closed_loop, synthetic_le
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
 from dffd.mqtt.topics import Topics
-from dffd.web.interface import DashboardFeed, EstimatePoint, FrameView, Overlay, Snapshot
+from dffd.web.interface import (
+    DashboardFeed,
+    EstimatePoint,
+    FrameView,
+    Snapshot,
+    overlay_from_output,
+)
 from dffd.web.metrics import Metrics
 
 FPS = 20.0  # synthetic frame rate: enough motion for the video, light on a shared 2-core box
@@ -176,24 +181,19 @@ class SyntheticDaemon:
         self._frames.append(now)
         self.state = out.state
         self.metrics.observe_frame_cpu(cpu_s)
-        obs = out.observation
         est = out.estimate
         self.feed.add_frame(
             FrameView(
                 step.frame.index,
                 step.frame.t,
                 step.frame.image,
-                Overlay(
-                    state=out.state,
-                    contour_px=None if obs is None else np.asarray(obs.points, dtype=float),
+                overlay_from_output(
+                    out,
                     normal_half_px=float(self.config.search_px),
-                    centroid_px=None if obs is None else obs.centroid,
-                    roi=self.roi,
                     focus_counts=step.tag.focus_counts,
                     bracket_counts=plan,
                     counts_range=self.lens.counts_range,
-                    z_m=None if est is None else est.z_m,
-                    sigma_m=None if est is None else est.sigma_m,
+                    roi=self.roi,
                 ),
             )
         )

@@ -16,6 +16,7 @@ from typing import Any, Final, Protocol, runtime_checkable
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core.pipeline import PipelineOutput
 from dffd.mqtt import models
 
 # Estimates kept for the plots: 60 s at the 30 fps the tracking frames can reach.
@@ -40,6 +41,33 @@ class Overlay:
     counts_range: tuple[int, int] | None = None  # the lens's focus range, for the bracket bar
     z_m: float | None = None
     sigma_m: float | None = None
+
+
+def overlay_from_output(
+    output: PipelineOutput,
+    *,
+    normal_half_px: float,
+    focus_counts: int | None = None,
+    bracket_counts: tuple[int, ...] | None = None,
+    counts_range: tuple[int, int] | None = None,
+    roi: tuple[int, int, int, int] | None = None,
+    sigma_m: float | None = None,
+) -> Overlay:
+    """The overlay of one core output (its contour and centroid, the last best estimate)."""
+    obs = output.observation
+    est = output.estimate
+    return Overlay(
+        state=output.state,
+        contour_px=None if obs is None else np.asarray(obs.points, dtype=np.float64),
+        normal_half_px=normal_half_px,
+        centroid_px=None if obs is None else (float(obs.centroid[0]), float(obs.centroid[1])),
+        roi=roi,
+        focus_counts=focus_counts,
+        bracket_counts=bracket_counts,
+        counts_range=counts_range,
+        z_m=None if est is None else est.z_m,
+        sigma_m=sigma_m if est is None or est.sigma_m is None else est.sigma_m,
+    )
 
 
 @dataclass(frozen=True, slots=True)
