@@ -141,60 +141,64 @@ ROLLING_SLOT = 2
 ROLLING_MAX_SPAN_S = 2.0
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, kw_only=True)
 class SchedulerConfig:
-    """Timing, policy and geometry the scheduler needs; built by the daemon from ``[scheduler]``."""
+    """Timing, policy and geometry the scheduler needs.
 
-    fps: float = 30.0
+    Built from the service config by :func:`dffd.wiring.scheduler_config`: the fields it sets
+    have no defaults here (the config's are the only ones); the rest are the scheduler's own.
+    """
+
+    fps: float
     # Exposure duration (s); None = the full frame period (the conservative assumption).
-    exposure_s: float | None = None
+    exposure_s: float | None
     # Frames between exposure and delivery (measured by `dffd calibrate`); only the rate limit of
     # the non-predictive mode and the pan/tilt delay depend on it.
-    capture_latency_frames: int = 2
+    capture_latency_frames: int
     # Bound on the error of frame timestamps (s): a frame counts as exposed off a focus move only
     # with this much to spare either side; covers capture timestamp jitter and reply transit.
-    timing_margin_s: float = 0.003
+    timing_margin_s: float
     # Burst policy. ``classic``: three settings mid → end → end → mid per burst, then
     # ``burst_every_frames`` tracking frames. ``rolling``: a triangle lo, mid, hi, mid, lo, … with
     # ``max(1, burst_every_frames)`` tracking frames at each pass through the middle; every
     # arrival at an end closes a burst with the previous end and the middle frame between.
-    burst_mode: BurstMode = "classic"
-    burst_every_frames: int = 10
-    sigma_trigger_m: float | None = None
+    burst_mode: BurstMode
+    burst_every_frames: int
+    sigma_trigger_m: float | None
     snap_counts: int = 40
     snap_fraction: float = 0.25
     retarget_steps: float = 0.25
     # Focus motor and link timing.
-    focus_speed_counts_per_s: float = 20000.0
+    focus_speed_counts_per_s: float
     focus_tolerance_counts: int = 2
-    baudrate: int = 9600
+    baudrate: int
     # The camera accepts one command per video field (DESIGN §5: ~1V, 16.7 ms at 60 Hz).
     command_slot_s: float = 1.0 / 60.0
     initial_focus_counts: int | None = None
     focus_inquiry_interval_s: float = 0.05
     # Pan/tilt.
-    pan_tilt_mode: PanTiltMode = "drive"
-    focal_length_mm: float = 4.0
-    pixel_pitch_mm: float = 0.006
-    frame_size: tuple[int, int] = (640, 480)
-    pan_tilt_gain_per_s: float = 1.5  # commanded deg/s per degree of error
-    pan_tilt_feedforward: bool = True  # add the target's filtered angular velocity
+    pan_tilt_mode: PanTiltMode
+    focal_length_mm: float
+    pixel_pitch_mm: float
+    frame_size: tuple[int, int]
+    pan_tilt_gain_per_s: float  # commanded deg/s per degree of error
+    pan_tilt_feedforward: bool  # add the target's filtered angular velocity
     pan_tilt_velocity_tau_s: float = 0.3  # time constant of that velocity filter
-    pan_tilt_lost_s: float = 0.5  # no centroid for this long: the target is lost → search
+    pan_tilt_lost_s: float  # no centroid for this long: the target is lost → search
     # Search after a loss: keep driving towards the target's extrapolated direction (its last
     # direction plus its filtered angular velocity times the time since) for this long, then
     # return to the last direction it was seen in and hold there (0: hold at once).
-    pan_tilt_search_s: float = 2.0
+    pan_tilt_search_s: float
     # Consecutive frames with a contour before the core's burst plans are followed: bursts (long
     # focus travel, transit frames) start only once the contour is stable (0: no such gate).
-    acquire_stable_frames: int = 0
+    acquire_stable_frames: int
     # Hysteresis band (deg): a correction starts when the error projected to the end of the free
     # window exceeds it, and runs until that error is cancelled.
-    pan_tilt_deadband_deg: float = 0.15
+    pan_tilt_deadband_deg: float
     # Cap on |correction speed − ω̂| (deg/s) unless the proportional gain asks for more: the core's
     # tracker predicts image motion at constant velocity and searches ±12 px along its normals
     # (12 px × 30 fps ≈ 3.3°/s at f = 31 mm, 5 µm pixels).
-    pan_tilt_max_correction_deg_s: float = 3.0
+    pan_tilt_max_correction_deg_s: float
     # Aim of a correction: the error left when the quiet speed resumes is (q − ω̂)·lead, so the
     # drift through the measured frames carries it across zero (~half a rolling-bracket cycle).
     pan_tilt_lead_s: float = 0.2
@@ -203,7 +207,7 @@ class SchedulerConfig:
     # Position resolution of the head (deg): EVI-D100 14.4 counts/°. Inquiry replies are
     # quantised to it; the model is kept within it rather than snapped.
     pan_tilt_resolution_deg: float = 1.0 / 14.4
-    pan_tilt_min_interval_s: float = 0.1
+    pan_tilt_min_interval_s: float
     pan_tilt_poll_interval_s: float = 0.25
     absolute_speed_index: int = 0x10
     pan_sign: int = 1  # +1: image x to the right is positive pan

@@ -37,13 +37,31 @@ from dffd.scheduler import (
     visca_speed_index,
 )
 
+# Every field the service config sets is given (SchedulerConfig has no defaults for them):
+# classic bursts, no pan/tilt, a 4 mm lens, 9600 baud.
 BASE = SchedulerConfig(
     fps=30.0,
+    exposure_s=None,
     capture_latency_frames=2,
+    timing_margin_s=0.003,
+    burst_mode="classic",
     burst_every_frames=6,
+    sigma_trigger_m=None,
     focus_speed_counts_per_s=20000.0,
-    initial_focus_counts=5000,
+    baudrate=9600,
+    focal_length_mm=4.0,
+    pixel_pitch_mm=0.006,
+    frame_size=(640, 480),
     pan_tilt_mode="off",
+    pan_tilt_gain_per_s=1.5,
+    pan_tilt_feedforward=True,
+    pan_tilt_lost_s=0.5,
+    pan_tilt_search_s=2.0,
+    acquire_stable_frames=0,
+    pan_tilt_deadband_deg=0.15,
+    pan_tilt_max_correction_deg_s=3.0,
+    pan_tilt_min_interval_s=0.1,
+    initial_focus_counts=5000,
 )
 PLAN = (4700, 5000, 5300)
 
@@ -269,11 +287,11 @@ def test_order_settings_minimises_travel() -> None:
 
 def test_config_rejects_nonsense() -> None:
     with pytest.raises(ValueError, match="fps"):
-        SchedulerConfig(fps=0)
+        replace(BASE, fps=0)
     with pytest.raises(ValueError, match="exposure_s"):
-        SchedulerConfig(fps=30, exposure_s=0.05)
+        replace(BASE, fps=30, exposure_s=0.05)
     with pytest.raises(ValueError, match="burst_every_frames"):
-        SchedulerConfig(burst_every_frames=-1)
+        replace(BASE, burst_every_frames=-1)
 
 
 # -- the scheduler against the model camera ----------------------------------------------------
