@@ -558,8 +558,10 @@ def test_replies_are_never_given_to_the_wrong_request(
             if rng.random() < drop_out:
                 continue
             # A duplicate arrives with its original (in one read): a line cannot tell them apart
-            # from two replies otherwise, and neither could any VISCA controller.
-            doubled = rng.random() < duplicate
+            # from two replies otherwise, and neither could any VISCA controller. Error replies
+            # are not doubled: a second "not executable" in a socket is, by the protocol, the
+            # command running there failing (no sequence number tells them apart on RS-232).
+            doubled = rng.random() < duplicate and packet[1] >> 4 != 0x6
             chunk = packet * (2 if doubled else 1)
             if rng.random() < garbage:
                 chunk = bytes(rng.randrange(0x80) for _ in range(rng.randint(1, 5))) + chunk

@@ -1,7 +1,8 @@
-"""``dffd sim-camera``: serve the simulated VISCA camera on a pseudo-terminal.
+"""``dffd sim-camera``: serve the simulated VISCA camera on a pseudo-terminal or a TCP port.
 
-Prints the device path (the ``--link`` symlink, else the pty slave) as the first line of stdout,
-serves until SIGTERM or SIGINT, then exits 0.
+Prints what it serves as the first line of stdout — the device path (the ``--link`` symlink, else
+the pty slave), or ``tcp://HOST:PORT`` for ``--listen tcp://…`` — serves until SIGTERM or
+SIGINT, then exits 0.
 """
 
 from __future__ import annotations
@@ -11,9 +12,11 @@ import asyncio
 import logging
 import signal
 import sys
+from urllib.parse import urlsplit
 
 from drivers.sim.device import DeviceConfig
 from drivers.sim.faults import Faults, FaultSpecError
+from drivers.sim.net_server import SimTcpServer
 from drivers.sim.server import SimCameraServer
 
 logger = logging.getLogger(__name__)
@@ -25,6 +28,12 @@ EXIT_USAGE = 2
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     """Add the sim-camera options to ``parser``."""
+    parser.add_argument(
+        "--listen",
+        metavar="URL",
+        default="pty",
+        help="pty (default) or tcp://127.0.0.1:PORT (raw VISCA over TCP; port 0: any free one)",
+    )
     parser.add_argument(
         "--link",
         metavar="PATH",
@@ -78,7 +87,25 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"dffd sim-camera: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    listen = args.listen.strip()
+    tcp: tuple[str, int] | None = None
+    if listen != "pty":
+        parts = urlsplit(listen)
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if parts.scheme != "tcp" or not parts.hostname or port is None:
+            print(
+                f"dffd sim-camera: --listen {listen!r}: use pty or tcp://HOST:PORT (port 0: any "
+                "free one); VISCA over IP (udp://) is not implemented yet",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
+        tcp = (parts.hostname, port)
     try:
+        if tcp is not None:
+            return asyncio.run(_serve_tcp(config, faults, *tcp))
         return asyncio.run(_serve(config, faults, args.link))
     except OSError as exc:
         print(
@@ -97,5 +124,18 @@ async def _serve(config: DeviceConfig, faults: Faults, link: str | None) -> int:
         sys.stdout.write(f"{server.path}\n")
         sys.stdout.flush()
         logger.info("sim camera %s on %s, faults: %s", config, server.path, faults.spec)
+        await stop.wait()
+    return EXIT_OK
+
+
+async def _serve_tcp(config: DeviceConfig, faults: Faults, host: str, port: int) -> int:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, stop.set)
+    async with SimTcpServer(config, host=host, port=port, faults=faults) as server:
+        sys.stdout.write(f"{server.url}\n")
+        sys.stdout.flush()
+        logger.info("sim camera %s on %s, faults: %s", config, server.url, faults.spec)
         await stop.wait()
     return EXIT_OK

@@ -82,7 +82,9 @@ from drivers.visca.transport import (
     TransportFactory,
     open_serial_port,
     serial_factory,
+    tcp_factory,
 )
+from drivers.visca.url import parse_camera_url
 
 __all__ = [
     "ACK_TIMEOUT_S",
@@ -268,7 +270,7 @@ class ViscaLink:
         self.url = url
         self.baudrate = baudrate
         self.timeouts = timeouts or LinkTimeouts()
-        self._transport_factory = transport_factory or serial_factory(url, baudrate, port_factory)
+        self._transport_factory = transport_factory or _factory_for(url, baudrate, port_factory)
         self._transport: Transport | None = None
         self._generation = 0  # bumps on every (re)open: callbacks of an old transport are void
         self._session = ViscaSession(self.timeouts, name=url)
@@ -834,6 +836,20 @@ class _Waiter:
         self.result.cancel()
         if self.acked is not None:
             self.acked.cancel()
+
+
+def _factory_for(url: str, baudrate: int, port_factory: PortFactory) -> TransportFactory:
+    """The transport ``url`` names (see drivers.visca.url); ValueError for a bad URL."""
+    parsed = parse_camera_url(url)
+    if parsed.transport == "tcp":
+        assert parsed.port is not None
+        return tcp_factory(parsed.target, parsed.port)
+    if parsed.transport == "visca-ip":
+        raise ValueError(
+            f"{url!r}: VISCA over IP (UDP) is not implemented yet; use tcp:// for a camera with "
+            "a raw VISCA TCP port, or the serial port"
+        )
+    return serial_factory(parsed.target, parsed.baudrate or baudrate, port_factory)
 
 
 def _consume(fut: asyncio.Future[Any]) -> None:

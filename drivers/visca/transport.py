@@ -185,3 +185,70 @@ class SerialTransport:
     def _lost(self, exc: BaseException) -> None:
         if not self._stop.is_set():
             self._on_lost(exc)
+
+
+# Connecting to a network camera: a LAN answers in milliseconds; this bounds a dead host.
+TCP_CONNECT_TIMEOUT_S = 3.0
+# Closing a TCP connection: the FIN handshake on a LAN; bounded so close() never hangs.
+TCP_CLOSE_TIMEOUT_S = 1.0
+TCP_READ_CHUNK = 4096
+
+
+class TcpTransport:
+    """Raw VISCA over TCP (PTZOptics style): the serial byte stream in a TCP connection."""
+
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        on_data: DataCallback,
+        on_lost: LostCallback,
+    ) -> None:
+        self._reader = reader
+        self._writer = writer
+        self._on_data = on_data
+        self._on_lost = on_lost
+        self._closed = False
+        self._task = asyncio.get_running_loop().create_task(self._read(), name="visca tcp read")
+
+    @classmethod
+    async def open(
+        cls, host: str, port: int, on_data: DataCallback, on_lost: LostCallback
+    ) -> TcpTransport:
+        """Connect to ``host:port`` (OSError/TimeoutError when it cannot)."""
+        async with asyncio.timeout(TCP_CONNECT_TIMEOUT_S):
+            reader, writer = await asyncio.open_connection(host, port)
+        return cls(reader, writer, on_data, on_lost)
+
+    def write(self, packet: bytes) -> None:
+        """Queue one packet on the connection (OSError once it is closed)."""
+        if self._closed or self._writer.is_closing():
+            raise OSError("VISCA TCP connection is closed")
+        self._writer.write(packet)
+
+    async def close(self) -> None:
+        """Close the connection and stop reading."""
+        self._closed = True
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+        self._writer.close()
+        with contextlib.suppress(OSError, TimeoutError):
+            async with asyncio.timeout(TCP_CLOSE_TIMEOUT_S):
+                await self._writer.wait_closed()
+
+    async def _read(self) -> None:
+        try:
+            while data := await self._reader.read(TCP_READ_CHUNK):
+                if not self._closed:
+                    self._on_data(data)
+            error: BaseException = ConnectionResetError("the camera closed the connection")
+        except OSError as exc:
+            error = exc
+        if not self._closed:
+            self._on_lost(error)
+
+
+def tcp_factory(host: str, port: int) -> TransportFactory:
+    """A factory opening :class:`TcpTransport` to ``host:port``."""
+    return functools.partial(TcpTransport.open, host, port)
