@@ -6,8 +6,14 @@ import numpy as np
 import pytest
 
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
-from dffd.core.focus import fit_burst, focus_cost, plan_burst
-from dffd.core.synthetic import DiscScene, render_scene, synthetic_lens
+from dffd.core.focus import (
+    edge_variance_cost,
+    fit_burst,
+    focus_cost,
+    observation_cost,
+    plan_burst,
+)
+from dffd.core.synthetic import DiscScene, render_disc, render_scene, synthetic_lens
 
 LENS = synthetic_lens()
 
@@ -120,3 +126,73 @@ def test_focus_cost_needs_enough_normals() -> None:
     g = focus_cost(np.full(64, 4.0))
     assert g is not None
     assert g[0] == pytest.approx(0.25)
+
+
+# -- focus measure: the vertex follows the true offset for any PSF shape ---------------------
+def _vertex_offset(psf: str, delta: float, measure: str, rng: np.random.Generator) -> float:
+    """Three-setting burst with outer blur 3 px, sharp setting at δ (bracket units); vertex."""
+    tracker = ContourTracker(TrackerConfig())
+    g, s = [], []
+    for x in (-1.0, 0.0, 1.0):
+        img = render_disc(200, 200, (100.3, 99.6), 40.0, 3.0 * (x - delta), psf=psf, rng=rng)  # type: ignore[arg-type]
+        poly = find_target(img)
+        assert poly is not None
+        assert tracker.start(img, poly, 0.0)
+        cost = observation_cost(tracker.update(img, 0.0, "similarity"), measure)  # type: ignore[arg-type]
+        assert cost is not None
+        g.append(cost[0])
+        s.append(cost[1])
+    fit = fit_burst([31.9, 32.0, 32.1], g, s, LENS)
+    assert fit.accepted, fit.reason
+    return (fit.v_hat_mm - 32.0) / 0.1
+
+
+@pytest.mark.parametrize("psf", ["gaussian", "disc", "aberrated"])
+def test_edge_variance_vertex_has_unit_slope_for_any_psf(psf: str) -> None:
+    rng = np.random.default_rng(3)
+    deltas = np.array([-0.6, -0.3, 0.0, 0.3, 0.6])
+    fitted = np.array([_vertex_offset(psf, d, "edge_variance", rng) for d in deltas])
+    slope, intercept = np.polyfit(deltas, fitted, 1)
+    # measured: 0.997 / 0.999 / 0.995, |intercept| ≤ 0.006 (3 repeats, /tmp/synth_slope.py)
+    assert slope == pytest.approx(1.0, abs=0.03)
+    assert abs(intercept) < 0.02
+    assert np.max(np.abs(fitted - deltas)) < 0.03
+
+
+def test_peak_gradient_vertex_is_biased_by_an_aberrated_psf() -> None:
+    # why the default measure changed: the old cost's vertex leans with the PSF's asymmetry
+    rng = np.random.default_rng(3)
+    deltas = np.array([-0.6, 0.0, 0.6])
+    old = np.array([_vertex_offset("aberrated", d, "peak_gradient", rng) for d in deltas])
+    new = np.array([_vertex_offset("aberrated", d, "edge_variance", rng) for d in deltas])
+    assert np.max(np.abs(old - deltas)) > 2.5 * np.max(np.abs(new - deltas))
+
+
+def test_edge_variance_grows_as_the_blur_variance_on_both_sides_of_focus() -> None:
+    blurs = np.array([-4.0, -2.0, 0.0, 2.0, 4.0])
+    for psf in ("gaussian", "disc", "aberrated"):
+        values = []
+        for b in blurs:
+            img = render_disc(200, 200, (100.3, 99.6), 40.0, b, psf=psf, noise_std=0.0)  # type: ignore[arg-type]
+            poly = find_target(img)
+            assert poly is not None
+            tracker = ContourTracker(TrackerConfig())
+            assert tracker.start(img, poly, 0.0)
+            cost = observation_cost(tracker.update(img, 0.0, "similarity"))
+            assert cost is not None
+            values.append(cost[0])
+        curvature, linear, _ = np.polyfit(blurs, values, 2)
+        # every PSF here has the per-axis variance b²/4 + const: the measure adds it exactly
+        assert curvature == pytest.approx(0.25, rel=0.03), psf
+        assert abs(linear) < 0.01, psf
+
+
+def test_edge_variance_cost_pools_normals_by_mass_and_needs_enough_of_them() -> None:
+    assert edge_variance_cost(np.full(5, 2.0), np.ones(5)) is None
+    assert edge_variance_cost(None, None) is None
+    var = np.full(64, 2.0)
+    var[:3] = np.nan
+    var[10] = 50.0  # an occluded normal: trimmed
+    cost = edge_variance_cost(var, np.full(64, 100.0))
+    assert cost is not None
+    assert cost[0] == pytest.approx(2.0)

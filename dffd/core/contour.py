@@ -24,6 +24,13 @@ from dffd.core import kernels
 
 FloatArray = npt.NDArray[np.float64]
 Motion = Literal["translation", "similarity", "affine"]
+# Edge second moment (focus measure, dffd/core/focus.py): the window around each normal's edge is
+# EDGE_WINDOW_SIGMAS times the frame's pooled edge spread, at least EDGE_WINDOW_MIN_PX, and is
+# re-adapted EDGE_WINDOW_PASSES times from the full search line. Chosen on the reference
+# simulator and synthetic edges (docs/estimation.md), reported on the aberrated lens.
+EDGE_WINDOW_SIGMAS = 3.0
+EDGE_WINDOW_MIN_PX = 2.5
+EDGE_WINDOW_PASSES = 3
 
 # Extra border of the per-frame gradient window: the passes after the first move the contour by a
 # pixel or two (measured on the reference simulator), so they reuse the first pass's gradient.
@@ -69,6 +76,10 @@ class BoundaryObservation:
     residual_px: float  # RMS normal residual of inliers after the fit
     ok: bool  # enough inliers and a plausible shape
     edge_sigma_px: float = math.nan  # Gaussian width of the edge (median over inlier normals)
+    # per normal: second moment (px²) of the edge-derivative profile about its centroid, in a
+    # window adapted to the frame's blur, and the profile's mass (its weight); NaN where unusable
+    edge_var: FloatArray | None = None
+    edge_mass: FloatArray | None = None
 
 
 class ContourTracker:
@@ -210,6 +221,17 @@ class ContourTracker:
         if out[kernels.OUT_STATUS] != 0:
             return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in
         edge_sigma2 = float(out[kernels.OUT_EDGE_SIGMA2])
+        edge_var = np.empty(n)
+        edge_mass = np.empty(n)
+        if has_window:
+            kernels.edge_moments(
+                bx, by, ws.normals, self._polarity, s, ws.scratch[kernels.SCRATCH_OFFSET],
+                ws.scratch[kernels.SCRATCH_INLIER], EDGE_WINDOW_SIGMAS, EDGE_WINDOW_MIN_PX,
+                EDGE_WINDOW_PASSES, edge_var, edge_mass,
+            )  # fmt: skip
+        else:
+            edge_var.fill(np.nan)
+            edge_mass.fill(np.nan)
         obs = BoundaryObservation(
             points=new_pts,
             centroid=(float(out[kernels.OUT_CX]), float(out[kernels.OUT_CY])),
@@ -219,6 +241,8 @@ class ContourTracker:
             residual_px=float(out[kernels.OUT_RMS]),
             ok=bool(out[kernels.OUT_OK] != 0),
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
+            edge_var=edge_var,
+            edge_mass=edge_mass,
         )
         return obs, centroid_in, r_in
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Literal, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -19,6 +19,30 @@ import numpy.typing as npt
 from dffd.core.lens import Lens
 
 REASON_OK = "ok"
+
+# "edge_variance": second moment of the edge-derivative profile (any PSF: blur variances add);
+# "peak_gradient": the paper's 1/mean(max ||∇I||²), a parabola only for a Gaussian PSF.
+FocusMeasure = Literal["edge_variance", "peak_gradient"]
+DEFAULT_FOCUS_MEASURE: FocusMeasure = "edge_variance"
+
+
+class EdgeSamples(Protocol):
+    """What a focus cost reads from a boundary observation (``contour.BoundaryObservation``)."""
+
+    @property
+    def peak_sq(self) -> npt.NDArray[np.float64]:
+        """Per-normal max ||∇I||² (NaN where no edge)."""
+        ...
+
+    @property
+    def edge_var(self) -> npt.NDArray[np.float64] | None:
+        """Per-normal edge second moment, px² (NaN where unusable)."""
+        ...
+
+    @property
+    def edge_mass(self) -> npt.NDArray[np.float64] | None:
+        """Per-normal edge-profile mass (the moment's weight)."""
+        ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,6 +105,47 @@ def focus_cost(
     se = math.sqrt(float(np.add.reduce(dev)) / (k - 1)) / math.sqrt(k)
     g = 1.0 / mean
     return g, g * se / mean
+
+
+def edge_variance_cost(
+    edge_var: npt.NDArray[np.float64] | None,
+    edge_mass: npt.NDArray[np.float64] | None,
+    trim_fraction: float = 0.1,
+) -> tuple[float, float] | None:
+    """Focus cost from the per-normal edge second moments (px²): (g, σ_g) or None.
+
+    ``g`` is the mass-weighted mean of the per-normal moments after dropping ``trim_fraction``
+    of the normals at each end of their sorted moments (occlusions, clutter); σ_g the standard
+    error of that weighted mean. Blur variances add, so for any PSF ``g = σ0² + c (v0 − v)²``.
+    """
+    if edge_var is None or edge_mass is None:
+        return None
+    ok = np.isfinite(edge_var) & np.isfinite(edge_mass)
+    var, mass = edge_var[ok], edge_mass[ok]
+    n = len(var)
+    if n < 8:
+        return None
+    order = np.argsort(var)
+    cut = int(trim_fraction * n)
+    keep = order[cut : n - cut] if n - 2 * cut >= 4 else order
+    v, w = var[keep], mass[keep]
+    total = float(np.add.reduce(w))
+    if total <= 0:
+        return None
+    g = float(np.add.reduce(w * v)) / total
+    k = len(v)
+    dev = (v - g) * w
+    se = math.sqrt(float(np.add.reduce(dev * dev)) * k / (k - 1)) / total
+    return g, se
+
+
+def observation_cost(
+    obs: EdgeSamples, measure: FocusMeasure = DEFAULT_FOCUS_MEASURE, trim_fraction: float = 0.1
+) -> tuple[float, float] | None:
+    """Focus cost of one frame's boundary observation with the chosen measure."""
+    if measure == "peak_gradient":
+        return focus_cost(obs.peak_sq, trim_fraction)
+    return edge_variance_cost(obs.edge_var, obs.edge_mass, trim_fraction)
 
 
 def fit_burst(

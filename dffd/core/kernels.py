@@ -36,6 +36,8 @@ _N_OUT = 11
 # columns of the per-normal scratch array
 _S_OFFSET, _S_PEAK, _S_VALID, _S_WIDTH2, _S_INTERIOR, _S_W, _S_WNEW, _S_RES = range(8)
 _S_TMP, _S_TMP2 = 8, 9
+# what fit_pass leaves in the scratch array for edge_moments: edge offsets and inlier flags
+SCRATCH_OFFSET, SCRATCH_INLIER = _S_OFFSET, _S_INTERIOR
 _N_SCRATCH = 10
 _TINY = 1e-6  # added before the log of |∇I|² (log-parabola), as in the reference
 # numba types of the kernels' arrays (all C-contiguous)
@@ -517,3 +519,101 @@ def fit_pass(  # noqa: PLR0917 - numba kernels take positional arguments
     out[OUT_CY] = c1
     out[OUT_RMS] = math.sqrt(rss / n_in)
     out[OUT_EDGE_SIGMA2] = edge_sigma2
+
+
+@_jit(
+    f"void({_M32}, {_M32}, {_M}, float64, int64, {_V}, {_V}, float64, float64, int64, {_V}, {_V})"
+)
+def edge_moments(  # noqa: PLR0917 - numba kernels take positional arguments
+    bx: npt.NDArray[np.float32],
+    by: npt.NDArray[np.float32],
+    normals: FloatArray,
+    polarity: float,
+    s: int,
+    offset: FloatArray,
+    inlier: FloatArray,
+    k_sigma: float,
+    min_half: float,
+    passes: int,
+    var_out: FloatArray,
+    mass_out: FloatArray,
+) -> None:
+    """Second moment of the edge-derivative profile along every inlier normal (focus measure).
+
+    Profile ``p_j = −polarity · (∇I · n)`` at ``x_j = j − s`` px. A window of half-width ``W``
+    (linear taper over the last pixel, so the moment is continuous in the centre and in ``W``)
+    is centred on the edge, re-centred once on the profile's centroid ``μ``; the moment is
+    ``Σ w p (x − μ)² / Σ w p``. Blur variances add under convolution whatever the PSF's shape,
+    so this grows as ``σ0² + c (v0 − v)²`` exactly where the peak of ``p`` does not. ``W`` starts
+    at the whole line and becomes ``k_sigma`` times the mass-weighted mean spread of the frame
+    (one blur for the whole target) for ``passes`` passes. A normal whose window would leave the
+    sampled line, or whose profile has no positive mass, gives NaN.
+    """
+    n = offset.shape[0]
+    half = float(s) - 0.5
+    for i in range(n):
+        var_out[i] = np.nan
+        mass_out[i] = np.nan
+    for k in range(passes):
+        final = k == passes - 1
+        num = 0.0
+        den = 0.0
+        for i in range(n):
+            var_out[i] = np.nan
+            mass_out[i] = np.nan
+            if inlier[i] == 0:
+                continue
+            nx = normals[i, 0] * -polarity
+            ny = normals[i, 1] * -polarity
+            c = offset[i]
+            mu = c
+            m0 = 0.0
+            m2 = 0.0
+            good = True
+            hw = half
+            for step in range(2):  # centre on the peak, then on the centroid
+                if abs(c) + hw > s - 0.5 + 1e-9:
+                    if final:  # a truncated window would bias the moment: drop the normal
+                        good = False
+                        break
+                    hw = s - 0.5 - abs(c)  # the adaptation passes only need a rough spread
+                    if hw < min_half:
+                        good = False
+                        break
+                lo = c - hw
+                hi = c + hw
+                m0 = 0.0
+                m1 = 0.0
+                m2 = 0.0
+                j0 = max(math.floor(lo), -s)
+                j1 = min(math.ceil(hi), s)
+                for x in range(j0, j1 + 1):
+                    w = min(max(hw + 0.5 - abs(x - c), 0.0), 1.0)
+                    if w <= 0.0:
+                        continue
+                    j = x + s
+                    p = w * (float(bx[i, j]) * nx + float(by[i, j]) * ny)
+                    d = x - c
+                    m0 += p
+                    m1 += p * d
+                    m2 += p * d * d
+                if m0 <= 0.0:
+                    good = False
+                    break
+                mu = c + m1 / m0
+                if step == 0:
+                    c = mu
+            if not good:
+                continue
+            # the last pass's moments are about its window centre c; move them to its centroid
+            d0 = mu - c
+            v = m2 / m0 - d0 * d0
+            if v <= 0.0:
+                continue
+            var_out[i] = v
+            mass_out[i] = m0
+            num += m0 * v
+            den += m0
+        if den <= 0.0:
+            return
+        half = max(min(k_sigma * math.sqrt(num / den), float(s) - 0.5), min_half)

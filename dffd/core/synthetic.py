@@ -3,7 +3,10 @@
 This is a stand-in for the optics simulator (``drivers/sim``), deliberately *not* the estimator's
 model: the defocus PSF here is a pillbox (uniform disc) of the geometric blur-circle radius,
 convolved with a small Gaussian residual blur, whereas the estimator assumes Gaussian spreads
-adding in quadrature. Image scale ``f/p`` (pinhole) or ``v0/p`` with ``breathing``.
+adding in quadrature. Image scale ``f/p`` (pinhole) or ``v0/p`` with ``breathing``. Focus-measure
+tests also blur with a Gaussian of the disc's second moment and with an aberrated defocus (rays
+through the pupil with spherical aberration: a ring on one side of focus, a peaked disc on the
+other), all of the same per-axis variance ``b²/4`` plus a constant.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -21,6 +25,10 @@ from dffd.core.types import FrameTag
 from drivers.frames import Frame
 
 Trajectory = Callable[[float], tuple[float, float, float]]  # t -> camera-frame position (m)
+Psf = Literal["disc", "gaussian", "aberrated"]
+# Below this residual blur the defocus kernel is box-integrated instead of sampled (a sampled
+# kernel needs a smooth PSF to keep its second moment).
+SAMPLED_KERNEL_MIN_SIGMA_PX = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,16 +58,32 @@ def render_disc(
     background: float = 40.0,
     noise_std: float = 2.0,
     rng: np.random.Generator | None = None,
+    psf: Psf = "disc",
+    spherical_px: float = 2.5,
 ) -> npt.NDArray[np.uint8]:
-    """Render an anti-aliased disc blurred by a pillbox of radius ``blur_px`` plus noise."""
+    """Render an anti-aliased disc blurred by a PSF of blur radius ``blur_px`` plus noise.
+
+    ``psf``: a pillbox of radius ``|blur_px|``; a Gaussian of σ = |blur_px|/2 (same second
+    moment); or ``aberrated``: rays ``t(ρ) = ρ (blur_px + s (ρ² − 2/3))`` of a uniform pupil
+    (``blur_px`` signed: its sign picks the side of focus, ``s = spherical_px``).
+    """
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
     dist = np.hypot(xs - np.float32(center[0]), ys - np.float32(center[1]))
     coverage = np.clip(np.float32(radius_px) - dist + np.float32(0.5), 0.0, 1.0)
     img = (background + (foreground - background) * coverage).astype(np.float32)
-    if blur_px > 0.3:
-        img = cv2.filter2D(img, -1, _pillbox(blur_px), borderType=cv2.BORDER_REPLICATE)
-    if residual_blur_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), residual_blur_px)
+    if residual_blur_px >= SAMPLED_KERNEL_MIN_SIGMA_PX:
+        kernel = defocus_kernel(psf, blur_px, residual_blur_px, spherical_px)
+        img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+    else:  # no smooth residual blur to sample against: box-integrated pillbox, then the blur
+        if abs(blur_px) > 0.05:
+            kernel = (
+                _pillbox(abs(blur_px))
+                if psf != "aberrated"
+                else defocus_kernel(psf, blur_px, 0.0, spherical_px)
+            )
+            img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        if residual_blur_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), residual_blur_px)
     if noise_std > 0:
         gen = rng if rng is not None else np.random.default_rng(0)
         img = img + gen.normal(0.0, noise_std, img.shape).astype(np.float32)
@@ -194,8 +218,63 @@ def closed_loop(
         burst_id += 1
 
 
+def defocus_kernel(
+    psf: Psf, blur_px: float, sigma0_px: float, spherical_px: float = 2.5
+) -> npt.NDArray[np.float32]:
+    """The defocus PSF ⊛ a Gaussian σ0, sampled at pixel centres (sums to 1).
+
+    The PSF (disc of radius |b|; Gaussian σ = |b|/2; aberrated rays ``t(ρ) = ρ (b + s (ρ² −
+    2/3))`` of a uniformly lit pupil, ``b`` signed) is built on a 9× finer grid, smoothed by σ0
+    there, and *sampled*: with σ0 ≳ 0.5 px the sampled kernel keeps the second moment
+    ``b²/4 (+ s²/72) + σ0²`` on both sides of focus (binning a sharp disc or a caustic ring into
+    pixels instead adds a box variance that depends on the blur and on its sign).
+    """
+    fine = 9  # odd: a sub-sample sits on every pixel centre
+    if psf == "gaussian":
+        sigma = math.sqrt(sigma0_px**2 + 0.25 * blur_px**2)
+        n = math.ceil(4 * sigma) + 1
+        x = np.arange(-n, n + 1, dtype=np.float64)
+        g = np.exp(-0.5 * (x / max(sigma, 1e-6)) ** 2)
+        k = np.outer(g, g)
+        return np.asarray(k / k.sum(), dtype=np.float32)
+    if psf == "aberrated":
+        d, sa = blur_px, spherical_px
+        n_rho = max(64, math.ceil(4 * fine * (abs(d) + abs(sa))))
+        u = (np.arange(n_rho) + 0.5) / n_rho  # ρ² uniform: equal-area zones
+        t = np.sqrt(u) * (d + sa * (u - 2.0 / 3.0))
+        r_max = float(np.abs(t).max())
+    else:
+        r_max = abs(blur_px)
+    half = math.ceil(r_max + 4 * sigma0_px) + 1
+    size = (2 * half + 1) * fine
+    if psf == "aberrated":
+        n_phi = max(64, math.ceil(4 * math.pi * r_max * fine))
+        phi = (np.arange(n_phi) + 0.5) * (2 * math.pi / n_phi)
+        x = (t[:, None] * np.cos(phi)[None, :]).ravel() * fine + size / 2
+        y = (t[:, None] * np.sin(phi)[None, :]).ravel() * fine + size / 2
+        density, _, _ = np.histogram2d(y, x, bins=size, range=[[0, size], [0, size]])
+    else:
+        axis = (np.arange(size) + 0.5) / fine - (half + 0.5)
+        density = ((axis[:, None] ** 2 + axis[None, :] ** 2) <= r_max * r_max).astype(np.float64)
+        if density.sum() == 0.0:
+            density[size // 2, size // 2] = 1.0
+    if sigma0_px > 0:
+        density = cv2.GaussianBlur(
+            density, (0, 0), sigma0_px * fine, borderType=cv2.BORDER_CONSTANT
+        )
+    k = density[fine // 2 :: fine, fine // 2 :: fine]
+    return np.asarray(k / k.sum(), dtype=np.float32)
+
+
 def _pillbox(radius: float) -> npt.NDArray[np.float32]:
+    """Uniform disc of ``radius`` px integrated over each pixel (8×8 sub-samples)."""
+    fine = 8
     n = math.ceil(radius + 1)
-    ys, xs = np.mgrid[-n : n + 1, -n : n + 1].astype(np.float32)
-    k = np.clip(np.float32(radius) - np.hypot(xs, ys) + np.float32(0.5), 0.0, 1.0)
+    sub = (np.arange(fine) + 0.5) / fine - 0.5
+    axis = (np.arange(-n, n + 1)[:, None] + sub[None, :]).ravel()
+    inside = (axis[:, None] ** 2 + axis[None, :] ** 2) <= radius * radius
+    size = 2 * n + 1
+    k = inside.reshape(size, fine, size, fine).mean(axis=(1, 3))
+    if k.sum() == 0.0:
+        k[n, n] = 1.0
     return np.asarray(k / k.sum(), dtype=np.float32)

@@ -14,6 +14,7 @@ scenario's blocks validate here unchanged.
 from __future__ import annotations
 
 import itertools
+import math
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
@@ -83,6 +84,45 @@ class LensConfig(_Model):
         return self
 
 
+class OpticsModelConfig(_Model):
+    """Which optics model renders the frames, and the parameters of the aberrated one.
+
+    ``reference``: the lens of ``drivers/sim/optics.py`` (uniform blur disc, focus power
+    quadratic in counts, uniform background). ``aberrated``: ``drivers/sim/optics_aberrated.py``
+    (ray-traced defocus with balanced spherical aberration, another focus cam, a textured
+    background wall, signal-dependent noise) — a lens the estimator was not tuned on.
+    """
+
+    model: Literal["reference", "aberrated"] = "reference"
+    # Transverse spherical aberration at the rim of the pupil, px (balanced against defocus so
+    # that the smallest RMS spot is at the nominal focus). Assumption: a fast zoom at full
+    # aperture, a caustic ring of ~2 px on one side of focus.
+    spherical_px: float = Field(default=2.5, ge=0.0, le=20.0)
+    # Gaussian σ of diffraction + sensor cell + analog chain on top of the ray PSF, px.
+    residual_blur_px: float = Field(default=0.5, ge=0.0, le=10.0)
+    # Focus cam: P = P_near · [(e^{κu} − 1)/(e^κ − 1) + ε sin(2π m u)/(2π m)], u ∈ [0, 1].
+    focus_exponent: float = Field(default=1.6, ge=0.0, le=6.0)  # κ
+    focus_ripple: float = Field(default=0.12, ge=0.0, le=0.3)  # ε (monotone while ε < κ/(e^κ−1))
+    focus_ripple_cycles: int = Field(default=2, ge=1, le=8)  # m
+    near_focus_m: float = Field(default=0.9, gt=0.0)
+    lens_name: str = "sim-aberrated"
+    # A textured wall behind the target (band-limited noise), DN peak-to-mean, at this depth.
+    background_contrast_dn: float = Field(default=12.0, ge=0.0, le=100.0)
+    background_depth_m: float = Field(default=25.0, gt=0.0)
+    background_seed: int = Field(default=0, ge=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> OpticsModelConfig:
+        kappa = self.focus_exponent
+        slope0 = 1.0 if kappa == 0.0 else kappa / math.expm1(kappa)  # cam slope at infinity
+        if self.focus_ripple >= slope0:
+            raise ValueError(
+                f"optics.focus_ripple {self.focus_ripple} must stay below {slope0:.3f} "
+                "(the cam slope at infinity) or the focus curve is not monotone"
+            )
+        return self
+
+
 class CaptureConfig(_Model):
     """Frame timing of the simulated capture path."""
 
@@ -104,7 +144,8 @@ class CaptureConfig(_Model):
 class TargetConfig(_Model):
     """The planar target (keys as ``hil.scenario.TargetSpec``)."""
 
-    shape: Literal["disc", "polygon", "textured", "aruco"] = "disc"
+    # irregular: a smooth non-convex outline from texture_seed (drivers/sim/outline.py)
+    shape: Literal["disc", "polygon", "textured", "aruco", "irregular"] = "disc"
     size_m: float = Field(default=0.03576, gt=0.0, le=2.0)  # R = sqrt(tr Σ) of the boundary
     known_size_m: float | None = None  # accepted (scenario files carry it); unused here
     rotation_dps: float = 0.0  # spin about the line of sight
@@ -146,6 +187,7 @@ class SimCameraConfig(_Model):
     sensor: SensorConfig = SensorConfig()
     lens: LensConfig = LensConfig()
     capture: CaptureConfig = CaptureConfig()
+    optics: OpticsModelConfig = OpticsModelConfig()
     zoom_counts: int = Field(default=0x4000, ge=0, le=0x4000)  # fixed zoom the camera starts at
     seed: int = Field(default=0, ge=0)  # noise and focus-jitter stream
     world: WorldConfig = WorldConfig()

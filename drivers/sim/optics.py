@@ -84,7 +84,12 @@ class Optics:
 
     @classmethod
     def from_config(cls, config: SimCameraConfig) -> Optics:
-        """Optics of a whole simulated-camera config."""
+        """Optics of a whole simulated-camera config: the model ``[optics] model`` names."""
+        if config.optics.model == "aberrated":
+            # imported here: the aberrated model builds on this module
+            from drivers.sim.optics_aberrated import AberratedOptics
+
+            return AberratedOptics(config.sensor, config.lens, config.optics)
         return cls(config.sensor, config.lens)
 
     # -- geometry ----------------------------------------------------------------------------
@@ -164,6 +169,25 @@ class Optics:
         """Normalised PSF for a blur-circle radius (with residual blur), cached."""
         quantised = round(blur_radius_px / BLUR_QUANTUM_PX) * BLUR_QUANTUM_PX
         return _psf_kernel(round(quantised, 6), self.lens.residual_blur_px, self.lens.psf)
+
+    # -- the seams a second optics model overrides (drivers/sim/optics_aberrated.py) ---------
+    def defocus_psf(self, v0_mm: float, v_mm: float, zoom_counts: float) -> Image32:
+        """PSF of a point sharp at ``v_mm`` with the sensor at ``v0_mm`` (this lens: unsigned)."""
+        return self.psf(self.blur_radius_px(v0_mm, v_mm, zoom_counts))
+
+    def render_target(
+        self,
+        target: TargetImage,
+        background_dn: float,
+        kernel: Image32,
+        motion_px: tuple[float, float],
+    ) -> Patch | None:
+        """The blurred target over a uniform ``background_dn`` (:func:`render_patch`)."""
+        return render_patch(target, background_dn, kernel, motion_px, self.frame_size)
+
+    def make_sensor(self) -> Sensor:
+        """The sensor that exposes this lens's frames."""
+        return Sensor(self.sensor)
 
     # -- ground-truth calibration file ------------------------------------------------------
     def lens_table(
@@ -252,6 +276,19 @@ class Patch:
     image: Image32
     x0: int  # column of image[:, 0] in the frame (may be negative)
     y0: int
+    # blurred coverage of the target (0–1), when a sensor composites the patch over a textured
+    # background (the image was blended with a uniform background_dn)
+    alpha: Image32 | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class FrameView:
+    """Where the camera looks during an exposure (what a textured background depends on)."""
+
+    pan_deg: float
+    tilt_deg: float
+    v0_mm: float
+    zoom_counts: float
 
 
 def render_patch(
@@ -327,8 +364,14 @@ class Sensor:
         self._noise = np.empty(shape, dtype=np.float32)
         self._frame = np.empty(shape, dtype=np.float32)
 
-    def expose(self, background_dn: float, patch: Patch | None, seed: int) -> Image8:
-        """A frame of uniform background plus the patch, with noise drawn from ``seed``."""
+    def expose(
+        self, background_dn: float, patch: Patch | None, seed: int, view: FrameView | None = None
+    ) -> Image8:
+        """A frame of uniform background plus the patch, with noise drawn from ``seed``.
+
+        ``view`` is for sensors that composite over a textured background; unused here.
+        """
+        del view
         cfg = self.config
         # OpenCV's RNG is per thread; reseeding it here makes each frame's noise a pure function
         # of the seed, whatever thread renders it. cv2.randn is ~3× faster than numpy here.

@@ -35,7 +35,7 @@ import numpy.typing as npt
 
 from drivers.frames import Frame, FrameSourceError
 from drivers.sim.config import CaptureConfig, SimCameraConfig
-from drivers.sim.optics import Optics, Sensor, TargetImage, average_kernels, project, render_patch
+from drivers.sim.optics import FrameView, Optics, TargetImage, average_kernels, project
 from drivers.sim.optics import world_from_camera as _world_from_camera
 from drivers.sim.state import CameraState, Clock
 from drivers.sim.world import World, rms_radius
@@ -111,7 +111,7 @@ class SimFrameSource:
         self._seed = seed
         self.t0 = state.now() if t0 is None else t0  # mid-exposure time of frame 0
         self.world_epoch = self.t0 if world_epoch is None else world_epoch
-        self._sensor = Sensor(optics.sensor)
+        self._sensor = optics.make_sensor()
         self._render_lock = threading.Lock()
         self._truth: OrderedDict[int, FrameTruth] = OrderedDict()
         self._jitter_rng = np.random.default_rng([seed, 0x4A17])
@@ -306,11 +306,9 @@ class SimFrameSource:
         z = float(cam[2])
         visible = mid.powered and z > MIN_DEPTH_M
         v = optics.sharp_v_mm(z, zoom) if z * 1000.0 > optics.focal_length_mm(zoom) else math.inf
+        v0_samples = [optics.lens_to_sensor_mm(c + self._jitter, zoom) for c in focus_samples]
         blurs = (
-            [
-                optics.blur_radius_px(optics.lens_to_sensor_mm(c + self._jitter, zoom), v, zoom)
-                for c in focus_samples
-            ]
+            [optics.blur_radius_px(v0_i, v, zoom) for v0_i in v0_samples]
             if math.isfinite(v)
             else [0.0]
         )
@@ -351,11 +349,12 @@ class SimFrameSource:
                 if corners_w is None
                 else project(corners_w, mid.pan_deg, mid.tilt_deg, scale, principal)[0]
             )
-            kernel = (
-                average_kernels([optics.psf(b) for b in blurs])
-                if len(blurs) > 1
-                else optics.psf(blurs[0])
+            kernels = (
+                [optics.defocus_psf(v0_i, v, zoom) for v0_i in v0_samples]
+                if math.isfinite(v)
+                else [optics.psf(0.0)]
             )
+            kernel = average_kernels(kernels) if len(kernels) > 1 else kernels[0]
             target = TargetImage(
                 outline_px,
                 world.shape.foreground_dn,
@@ -363,9 +362,10 @@ class SimFrameSource:
                 corners_px,
                 texture_nearest=world.shape.kind == "aruco",
             )
-            patch = render_patch(target, world.background_dn, kernel, motion, optics.frame_size)
+            patch = optics.render_target(target, world.background_dn, kernel, motion)
         background = world.background_dn if mid.powered else 0.0
-        image = self._sensor.expose(background, patch, self._noise_seed(t, index))
+        view = FrameView(mid.pan_deg, mid.tilt_deg, v0, zoom)
+        image = self._sensor.expose(background, patch, self._noise_seed(t, index), view)
 
         width, height = optics.frame_size
         in_view = visible and bool(

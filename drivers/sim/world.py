@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.sim.config import TargetConfig, TrajectoryConfig, WorldConfig
+from drivers.sim.outline import irregular_unit_outline
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -324,6 +325,8 @@ def make_shape(config: TargetConfig) -> TargetShape:
     if config.shape == "disc":
         angles = np.linspace(0.0, 2.0 * math.pi, DISC_VERTICES, endpoint=False)
         unit = np.stack((np.cos(angles), np.sin(angles)), axis=1)
+    elif config.shape == "irregular":
+        unit = irregular_unit_outline(config.texture_seed)
     elif config.shape == "polygon":
         angles = np.linspace(0.0, 2.0 * math.pi, config.sides, endpoint=False) - math.pi / 2
         unit = np.stack((np.cos(angles), np.sin(angles)), axis=1)
