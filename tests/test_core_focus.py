@@ -134,7 +134,9 @@ def _vertex_offset(psf: str, delta: float, measure: str, rng: np.random.Generato
     tracker = ContourTracker(TrackerConfig())
     g, s = [], []
     for x in (-1.0, 0.0, 1.0):
-        img = render_disc(200, 200, (100.3, 99.6), 40.0, 3.0 * (x - delta), psf=psf, rng=rng)  # type: ignore[arg-type]
+        img = render_disc(
+            200, 200, (100.3, 99.6), 40.0, 3.0 * (x - delta), psf=psf, rng=rng, sampled=True
+        )  # type: ignore[arg-type]
         poly = find_target(img)
         assert poly is not None
         assert tracker.start(img, poly, 0.0)
@@ -173,7 +175,9 @@ def test_edge_variance_grows_as_the_blur_variance_on_both_sides_of_focus() -> No
     for psf in ("gaussian", "disc", "aberrated"):
         values = []
         for b in blurs:
-            img = render_disc(200, 200, (100.3, 99.6), 40.0, b, psf=psf, noise_std=0.0)  # type: ignore[arg-type]
+            img = render_disc(
+                200, 200, (100.3, 99.6), 40.0, b, psf=psf, noise_std=0.0, sampled=True
+            )  # type: ignore[arg-type]
             poly = find_target(img)
             assert poly is not None
             tracker = ContourTracker(TrackerConfig())

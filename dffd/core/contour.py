@@ -24,6 +24,7 @@ from dffd.core import kernels
 
 FloatArray = npt.NDArray[np.float64]
 Motion = Literal["translation", "similarity", "affine"]
+
 # Edge second moment (focus measure, dffd/core/focus.py): the window around each normal's edge is
 # EDGE_WINDOW_SIGMAS times the frame's pooled edge spread, at least EDGE_WINDOW_MIN_PX, and is
 # re-adapted EDGE_WINDOW_PASSES times from the full search line. Chosen on the reference

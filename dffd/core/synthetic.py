@@ -60,28 +60,33 @@ def render_disc(
     rng: np.random.Generator | None = None,
     psf: Psf = "disc",
     spherical_px: float = 2.5,
+    sampled: bool = False,
 ) -> npt.NDArray[np.uint8]:
     """Render an anti-aliased disc blurred by a PSF of blur radius ``blur_px`` plus noise.
 
     ``psf``: a pillbox of radius ``|blur_px|``; a Gaussian of σ = |blur_px|/2 (same second
     moment); or ``aberrated``: rays ``t(ρ) = ρ (blur_px + s (ρ² − 2/3))`` of a uniform pupil
     (``blur_px`` signed: its sign picks the side of focus, ``s = spherical_px``).
+    ``sampled``: one kernel, PSF ⊛ residual Gaussian sampled at pixel centres
+    (:func:`defocus_kernel`: the second moment is exactly the PSF's on both sides of focus);
+    otherwise (the closed-loop tests' renders) the PSF is integrated over pixels — a box of
+    blur-dependent variance near focus — and the residual blur applied after.
     """
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
     dist = np.hypot(xs - np.float32(center[0]), ys - np.float32(center[1]))
     coverage = np.clip(np.float32(radius_px) - dist + np.float32(0.5), 0.0, 1.0)
     img = (background + (foreground - background) * coverage).astype(np.float32)
-    if residual_blur_px >= SAMPLED_KERNEL_MIN_SIGMA_PX:
+    if sampled and residual_blur_px >= SAMPLED_KERNEL_MIN_SIGMA_PX:
         kernel = defocus_kernel(psf, blur_px, residual_blur_px, spherical_px)
         img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
-    else:  # no smooth residual blur to sample against: box-integrated pillbox, then the blur
-        if abs(blur_px) > 0.05:
-            kernel = (
-                _pillbox(abs(blur_px))
-                if psf != "aberrated"
-                else defocus_kernel(psf, blur_px, 0.0, spherical_px)
-            )
+    else:  # the PSF integrated over pixels, then the residual blur
+        if psf == "aberrated":
+            kernel = defocus_kernel(psf, blur_px, 0.0, spherical_px)
             img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        elif psf == "gaussian" and abs(blur_px) > 0.05:
+            img = cv2.GaussianBlur(img, (0, 0), 0.5 * abs(blur_px))
+        elif psf == "disc" and abs(blur_px) > 0.3:
+            img = cv2.filter2D(img, -1, _pillbox(abs(blur_px)), borderType=cv2.BORDER_REPLICATE)
         if residual_blur_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), residual_blur_px)
     if noise_std > 0:
@@ -267,14 +272,7 @@ def defocus_kernel(
 
 
 def _pillbox(radius: float) -> npt.NDArray[np.float32]:
-    """Uniform disc of ``radius`` px integrated over each pixel (8×8 sub-samples)."""
-    fine = 8
     n = math.ceil(radius + 1)
-    sub = (np.arange(fine) + 0.5) / fine - 0.5
-    axis = (np.arange(-n, n + 1)[:, None] + sub[None, :]).ravel()
-    inside = (axis[:, None] ** 2 + axis[None, :] ** 2) <= radius * radius
-    size = 2 * n + 1
-    k = inside.reshape(size, fine, size, fine).mean(axis=(1, 3))
-    if k.sum() == 0.0:
-        k[n, n] = 1.0
+    ys, xs = np.mgrid[-n : n + 1, -n : n + 1].astype(np.float32)
+    k = np.clip(np.float32(radius) - np.hypot(xs, ys) + np.float32(0.5), 0.0, 1.0)
     return np.asarray(k / k.sum(), dtype=np.float32)
