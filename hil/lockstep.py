@@ -4,9 +4,11 @@ A discrete-event loop over one virtual clock (injected into the simulator's
 :class:`~drivers.sim.state.CameraState`). Events, in time order:
 
 * the simulated VISCA device (:class:`drivers.sim.device.ViscaDevice`, wire pacing at 9600 baud,
-  one message per video field, motors at their simulated speeds) emits replies → the
+  one message per video field, motors at their simulated speeds) emits replies, matched by the
+  service's own VISCA session (:class:`drivers.sim.virtual_bus.VirtualBus`) → the
   :class:`~dffd.scheduler.Scheduler` hears Completions and positions when they would arrive;
-* the scheduler's wake-ups → its actions are encoded and written to the device;
+* the scheduler's wake-ups → its actions are translated as the daemon translates them
+  (:mod:`dffd.actuation`, the driver's camera profile) and submitted to the session;
 * a frame is *delivered* ``exposure/2 + latency`` after its exposure mid-time → the simulator
   renders it at its exposure time (``render(t)``), the scheduler tags it, the core processes
   it with :meth:`dffd.step.CoreStep.step` (the daemon's estimator thread calls the same step),
@@ -28,11 +30,12 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
 import numpy as np
 
-from dffd.actuation import report_done, report_failed
+from dffd.actuation import completion_timeout_s, report_done, report_failed, request_for
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.core.pipeline import PipelineConfig, PipelineOutput
@@ -50,7 +53,9 @@ from dffd.wiring import pipeline_config as service_pipeline_config
 from dffd.wiring import scheduler_config as service_scheduler_config
 from drivers.frames import Frame
 from drivers.sim.source import FrameTruth
-from drivers.visca.camera import profile_for
+from drivers.sim.virtual_bus import VirtualBus
+from drivers.visca.camera import MOVE_TIMEOUT_MARGIN_S, CameraProfile, profile_for
+from drivers.visca.session import Answered, Completed, Failed, NetworkChanged
 from hil.baselines import (
     ArucoBaseline,
     find_blob,
@@ -62,7 +67,6 @@ from hil.baselines import (
 from hil.results import BurstRecord, RunResult
 from hil.scenario import Scenario, TrajectorySpec
 from hil.simbuild import T_FIRST_FRAME_S, SimSession, build_session
-from hil.vlink import Outcome, VirtualLink
 
 logger = logging.getLogger(__name__)
 
@@ -176,7 +180,7 @@ class _Runner:
         dcfg = daemon_config()
         # The driver's profile of the configured model converts degrees and speed codes.
         self.profile = profile_for(dcfg.camera.model)
-        self.link = VirtualLink(self.device, self.profile)
+        self.link = _Executor(VirtualBus(self.device), self.profile, self._network_changed)
         self.core = CoreStep.build(pipeline_config(scenario, dcfg), self.lens)
         self.pipeline = self.core.pipeline
         self.sched_config = scheduler_config(session, self.lens, dcfg, scenario.scheduler)
@@ -229,8 +233,8 @@ class _Runner:
                 candidates.append(max(deadline, now))
             now = min(candidates)
             self.session.set_time(now)
-            for event in self.link.poll(now):
-                self._dispatch(event)
+            for outcome in self.link.poll(now):
+                self._dispatch(outcome)
             if now >= t_frame:
                 self._frame(k)
                 k += 1
@@ -267,7 +271,12 @@ class _Runner:
         if isinstance(action, FocusMove):
             self.scheduler.on_focus_completed(action.move_id, now)
 
-    def _dispatch(self, outcome: Outcome) -> None:
+    def _network_changed(self, now: float) -> None:
+        # As the daemon after a re-initialisation: the focus and the head may have moved.
+        self.scheduler.invalidate_focus(now)
+        self.scheduler.on_pan_tilt_failed(now)
+
+    def _dispatch(self, outcome: _Outcome) -> None:
         action = outcome.action
         if self.policy == "sweep" and isinstance(action, FocusMove):
             # The sweep's own focus moves (the scheduler's were swallowed, see _act).
@@ -410,12 +419,82 @@ class _Runner:
             "focus_moves": self.scheduler.stats.focus_moves,
             "pan_tilt_commands": self.scheduler.stats.pan_tilt_commands,
         }
-        res.extra["link"] = {"commands": self.link.commands_sent, "errors": self.link.errors}
+        stats = self.link.bus.stats()
+        res.extra["link"] = {
+            "commands": self.link.commands_sent,
+            "errors": sum(stats.errors_by_code.values()),
+            "timeouts": sum(stats.timeouts.values()),
+        }
         if self._aruco is not None:
             res.extra["aruco"] = {
                 "detections": self._aruco.detections,
                 "misses": self._aruco.misses,
             }
+
+
+@dataclass(frozen=True, slots=True)
+class _Outcome:
+    """How ``action`` ended at ``t``: done (with an inquiry's ``answer``) or failed."""
+
+    action: Action
+    t: float
+    ok: bool
+    answer: object = None
+
+
+class _Executor:
+    """Scheduler actions on the VISCA session in virtual time: the service's translation
+    (:func:`dffd.actuation.request_for`) in, the session's events out as outcomes.
+
+    All reply matching is the session's (:mod:`drivers.visca.session`); this only remembers
+    which action each ticket carries.
+    """
+
+    def __init__(
+        self, bus: VirtualBus, profile: CameraProfile, on_network_change: Callable[[float], None]
+    ) -> None:
+        self.bus = bus
+        self.profile = profile
+        self._on_network_change = on_network_change  # the bus re-addressed the camera
+        self._actions: dict[int, Action] = {}
+        self.commands_sent = 0
+
+    def send(self, action: Action, now: float) -> list[_Outcome]:
+        """Submit ``action`` at ``now`` (one outside the camera's ranges fails at once)."""
+        try:
+            request = request_for(action, self.profile)
+        except ValueError as exc:
+            logger.debug("action %r not sent: %s", action, exc)
+            return [_Outcome(action, now, ok=False)]
+        timeout = completion_timeout_s(request, self.profile, MOVE_TIMEOUT_MARGIN_S)
+        ticket = self.bus.submit(request, now, completion_timeout=timeout)
+        self._actions[ticket] = action
+        self.commands_sent += 1
+        return []
+
+    def next_deadline(self) -> float | None:
+        """When the session or the device next has something to do."""
+        return self.bus.next_deadline()
+
+    def poll(self, now: float) -> list[_Outcome]:
+        """Advance to ``now``; the outcomes of finished actions, in time order."""
+        outcomes: list[_Outcome] = []
+        for event in self.bus.poll(now):
+            if isinstance(event, NetworkChanged):
+                self._on_network_change(event.t)
+                continue
+            if not isinstance(event, Completed | Answered | Failed):
+                continue  # Acked: the command runs
+            action = self._actions.pop(event.ticket, None)
+            if action is None:
+                continue
+            if isinstance(event, Failed):
+                logger.debug("VISCA %r failed at %.3f: %s", action, event.t, event.error)
+                outcomes.append(_Outcome(action, event.t, ok=False))
+            else:
+                answer = event.value if isinstance(event, Answered) else None
+                outcomes.append(_Outcome(action, event.t, ok=True, answer=answer))
+        return outcomes
 
 
 class _SweepState:
