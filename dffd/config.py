@@ -48,6 +48,7 @@ from dffd.resources import (
     is_lens_name,
     lens_table,
 )
+from dffd.web.listen import WebConfigError, is_loopback, parse_listen
 from drivers.sim.resources import world_file, world_names
 
 __all__ = [
@@ -64,6 +65,7 @@ __all__ = [
     "SchedulerConfig",
     "SimConfig",
     "TargetConfig",
+    "WebConfig",
     "configure_parser",
     "load_config",
     "missing_files",
@@ -475,6 +477,42 @@ class SimConfig(_Section):
         return Path(self.scenario)
 
 
+class WebConfig(_Section):
+    """``[web]``: the dashboard and Prometheus ``/metrics`` (off unless ``listen`` is set)."""
+
+    listen: str | None = Field(
+        default=None,
+        description='"HOST:PORT" of the dashboard and /metrics; unset: off. Anything but a '
+        "loopback address needs token_file",
+    )
+    token_file: Path | None = Field(
+        default=None, description="file holding the bearer token the dashboard requires"
+    )
+
+    @field_validator("listen")
+    @classmethod
+    def _listen_form(cls, value: str | None) -> str | None:
+        if value is not None:
+            try:
+                parse_listen(value)
+            except WebConfigError as exc:
+                raise _value_error(str(exc).removeprefix(f"web.listen = {value!r}: ")) from None
+        return value
+
+    @model_validator(mode="after")
+    def _token_beyond_loopback(self) -> WebConfig:
+        if self.listen is not None and self.token_file is None:
+            host, _ = parse_listen(self.listen)
+            if not is_loopback(host):
+                raise _field_error(
+                    "token_file",
+                    f"listen = {self.listen!r} is not a loopback address: anyone on the network "
+                    "could command the camera. Set web.token_file to a file holding a secret "
+                    '(e.g. `openssl rand -hex 32 > FILE`) or listen on "127.0.0.1:PORT"',
+                )
+        return self
+
+
 class DffdConfig(BaseSettings):
     """The whole configuration (DESIGN §9); build it with :func:`load_config`."""
 
@@ -496,6 +534,7 @@ class DffdConfig(BaseSettings):
     mqtt: MqttConfig = MqttConfig()
     log: LogConfig = LogConfig()
     sim: SimConfig = SimConfig()
+    web: WebConfig = WebConfig()
 
     @classmethod
     def settings_customise_sources(
@@ -572,6 +611,7 @@ def missing_files(config: DffdConfig) -> list[str]:
         ("mqtt.keyfile", config.mqtt.keyfile),
         ("sim.camera_config", config.sim.camera_config),
         ("sim.scenario", config.sim.scenario_file),
+        ("web.token_file", config.web.token_file),
     ]
     return [
         f"{dotted}: {file} does not exist; create it or fix the path"
@@ -628,6 +668,7 @@ _PATH_FIELDS: tuple[tuple[str, str], ...] = (
     ("mqtt", "keyfile"),
     ("log", "dir"),
     ("sim", "camera_config"),
+    ("web", "token_file"),
 )
 
 

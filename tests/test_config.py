@@ -14,6 +14,7 @@ from dffd.config import (
     ConfigError,
     DffdConfig,
     MqttConfig,
+    WebConfig,
     load_config,
     missing_files,
 )
@@ -74,9 +75,14 @@ def test_defaults_are_the_simulated_embedded_run(tmp_path: Path) -> None:
 
 def test_embedded_default_file_equals_the_fields_defaults(tmp_path: Path) -> None:
     assert default_config_file().parent.name == "defaults"
-    # An empty file gets every field's own default: the embedded file must say the same.
-    assert load_config(write(tmp_path, "")) == load_config(None)
-    assert load_config(default_config_file()) == load_config(None)
+    # An empty file gets every field's own default: the embedded file must say the same, except
+    # that the embedded run serves the dashboard (off unless a config file sets web.listen).
+    embedded = load_config(None)
+    assert embedded.web.listen == "127.0.0.1:8080"
+    empty = load_config(write(tmp_path, ""))
+    assert empty.web.listen is None
+    assert empty == embedded.model_copy(update={"web": WebConfig()})
+    assert load_config(default_config_file()) == embedded
 
 
 def test_shipped_lab_file_is_valid_hardware_config() -> None:

@@ -379,3 +379,28 @@ async def test_callback_source_is_a_dashboard_source() -> None:
     reply = await source.execute(b'{"cmd": "ping"}')
     assert reply.ok
     assert static.replies == [b'{"cmd": "ping"}']
+
+
+# -- [web] in the service config ---------------------------------------------------------------
+
+
+def test_web_config_listen_token_and_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from dffd.config import ConfigError, load_config
+
+    def config(text: str) -> Path:
+        path = tmp_path / "dffd.toml"
+        path.write_text(text, encoding="utf-8")
+        return path
+
+    assert load_config(config("")).web.listen is None  # a config file: off unless set
+    assert load_config(None).web.listen == "127.0.0.1:8080"  # the embedded run: on, loopback
+    with pytest.raises(ConfigError) as info:
+        load_config(config('[web]\nlisten = "0.0.0.0:8080"\n'))
+    assert any(p.startswith("web.token_file:") and "loopback" in p for p in info.value.problems)
+    with pytest.raises(ConfigError) as info:
+        load_config(config('[web]\nlisten = "8080"\n'))
+    assert any(p.startswith("web.listen:") for p in info.value.problems)
+    web = load_config(config('[web]\nlisten = "0.0.0.0:8443"\ntoken_file = "token"\n')).web
+    assert web.token_file == tmp_path / "token"  # relative to the config file
+    monkeypatch.setenv("DFFD_WEB__LISTEN", "127.0.0.1:18080")
+    assert load_config(config("")).web.listen == "127.0.0.1:18080"

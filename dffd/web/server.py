@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
-import ipaddress
 import json
 import logging
 from collections.abc import Awaitable, Callable
@@ -35,8 +34,20 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from dffd.web.interface import DashboardSource, Snapshot
+from dffd.web.listen import WebConfigError, WebError, is_loopback, parse_listen
 from dffd.web.metrics import CONTENT_TYPE, Metrics
 from dffd.web.video import VIDEO_MAX_FPS, VideoBroadcaster
+
+__all__ = [
+    "DEFAULT_LISTEN",
+    "DashboardServer",
+    "WebConfigError",
+    "WebError",
+    "WebSettings",
+    "is_loopback",
+    "parse_listen",
+    "read_token",
+]
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -61,14 +72,6 @@ _STATIC_TYPES: Final = {
     "style.css": "text/css",
     "index.html": "text/html",
 }
-
-
-class WebError(Exception):
-    """Root of the dashboard's errors."""
-
-
-class WebConfigError(WebError):
-    """``[web]`` settings that cannot be served safely or at all."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,32 +100,6 @@ class WebSettings:
                 "not set: anyone on the network could command the camera. Set web.token_file "
                 'to a file holding a secret token, or listen on "127.0.0.1:PORT"'
             )
-
-
-def parse_listen(listen: str) -> tuple[str, int]:
-    """``"HOST:PORT"`` or ``"[IPv6]:PORT"`` → (host, port); raises WebConfigError."""
-    host, sep, port_text = listen.strip().rpartition(":")
-    if not sep or not host:
-        raise WebConfigError(f'web.listen = {listen!r}: give "HOST:PORT", e.g. "127.0.0.1:8080"')
-    if host.startswith("[") and host.endswith("]"):
-        host = host[1:-1]
-    try:
-        port = int(port_text)
-    except ValueError:
-        raise WebConfigError(f"web.listen = {listen!r}: the port must be a number") from None
-    if not 0 <= port <= 65535:
-        raise WebConfigError(f"web.listen = {listen!r}: the port must be within 0..65535")
-    return host, port
-
-
-def is_loopback(host: str) -> bool:
-    """True for ``localhost`` and loopback IP addresses (127.0.0.0/8, ::1)."""
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False  # a host name: it may resolve to anything
 
 
 def read_token(path: Path) -> str:
