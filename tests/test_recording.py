@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 
 from dffd.core.synthetic import synthetic_lens
 from dffd.core.types import FrameTag
-from dffd.recording import RecordingError, RecordingReader, RecordingWriter
+from dffd.recording import FrameRecord, RecordingError, RecordingReader, RecordingWriter
 from drivers.frames import Frame
 
 TAGS = [
@@ -92,3 +93,61 @@ def test_errors_name_the_file(tmp_path: Path) -> None:
     frames_csv.write_text(frames_csv.read_text().replace("track", "tracking", 1))
     with pytest.raises(RecordingError, match="line 2"):
         RecordingReader(tmp_path / "run")
+
+
+# -- read-ahead decoding ---------------------------------------------------------------------
+class _CountingReader(RecordingReader):
+    """Counts the frames whose decoding has started (from any thread)."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path)
+        self.started = 0
+        self._lock = threading.Lock()
+
+    def load(self, rec: FrameRecord) -> Frame:
+        with self._lock:
+            self.started += 1
+        return super().load(rec)
+
+
+def _write_many(path: Path, n: int) -> list[Frame]:
+    rng = np.random.default_rng(3)
+    frames = []
+    with RecordingWriter(path, 30, (64, 48), synthetic_lens().to_meta()) as w:
+        for i in range(n):
+            f = Frame(i, i / 30, rng.integers(0, 256, (48, 64), dtype=np.uint8))
+            w.write(f, TAGS[i % 2])  # track / transit
+            frames.append(f)
+    return frames
+
+
+def test_read_ahead_keeps_the_order_and_a_bounded_window(tmp_path: Path) -> None:
+    frames = _write_many(tmp_path / "run", 60)
+    reader = _CountingReader(tmp_path / "run")
+    window = 4
+    for k, (got, orig) in enumerate(
+        zip(reader.frames(workers=3, window=window), frames, strict=True)
+    ):
+        assert got[0].index == orig.index
+        np.testing.assert_array_equal(got[0].image, orig.image)
+        # decoded or decoding: the frames handed out plus at most `window` ahead
+        assert reader.started <= k + 1 + window
+    assert reader.started == len(frames)
+    sequential = [f.index for f, _ in reader.frames(workers=0)]
+    assert sequential == list(range(60))
+
+
+def test_read_ahead_raises_at_the_broken_frame_and_stops_its_threads(tmp_path: Path) -> None:
+    _write_many(tmp_path / "run", 30)
+    (tmp_path / "run" / "frames" / "000012.png").write_bytes(b"not a png")
+    reader = RecordingReader(tmp_path / "run")
+    it = reader.frames(workers=2, window=8)
+    seen = [next(it)[0].index for _ in range(12)]
+    with pytest.raises(RecordingError, match=r"000012\.png"):
+        next(it)
+    assert seen == list(range(12))
+    # a consumer that stops early leaves no decoder behind either
+    it = reader.frames(workers=2, window=8)
+    next(it)
+    it.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("dffd-decode")]
