@@ -45,7 +45,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else f"loaded {report.loaded} from the cache"
     )
     print(
-        f"{report.kernels} tracker kernels ready in {seconds:.1f} s ({how}); "
+        f"{report.kernels} kernels ready in {seconds:.1f} s ({how}); "
         f"cache: {', '.join(report.cache_dirs)}"
     )
     return EXIT_OK

@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import numba
 import pytest
 
 from dffd import warmup
 from dffd.core import kernels
 
 
+def _n_kernels() -> int:
+    return sum(isinstance(v, numba.core.dispatcher.Dispatcher) for v in vars(kernels).values())
+
+
 def test_every_kernel_is_compiled_once_and_cached() -> None:
     report = kernels.cache_report()
-    assert report.kernels == 8
+    assert report.kernels == _n_kernels() > 0
     assert report.uncached == 0  # the test tree's __pycache__ (or NUMBA_CACHE_DIR) is writable
     assert report.loaded + report.compiled == report.kernels
     assert report.cache_dirs
@@ -19,5 +24,5 @@ def test_every_kernel_is_compiled_once_and_cached() -> None:
 def test_warmup_reports_the_cache(capsys: pytest.CaptureFixture[str]) -> None:
     assert warmup.main([]) == warmup.EXIT_OK
     out = capsys.readouterr().out
-    assert "8 tracker kernels ready" in out
+    assert f"{_n_kernels()} kernels ready" in out
     assert kernels.cache_report().cache_dirs[0] in out
