@@ -76,6 +76,16 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
     bench.add_argument("--quick", action="store_true", help="shorter runs (smoke test)")
 
+    soak = sub.add_parser(
+        "soak", help="long run of the live daemon: RSS slope, CPU, latency and rates over time"
+    )
+    length = soak.add_mutually_exclusive_group(required=True)
+    length.add_argument("--minutes", type=float, help="run length after the first estimate")
+    length.add_argument("--seconds", type=float, help="run length in seconds (smoke tests)")
+    soak.add_argument("--scenario", default="static", help="the daemon's built-in world")
+    soak.add_argument("--window", type=float, default=0.0, help="seconds per window (0: auto)")
+    soak.add_argument("--out", type=Path, default=DEFAULT_OUT / "soak", help="output directory")
+
     table = sub.add_parser("table", help="print reports as the README's markdown results table")
     table.add_argument("reports", type=Path, nargs="+", help="report.json files or directories")
 
@@ -105,6 +115,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from hil.benchmarks import run_bench
 
             return run_bench(args.out, quick=args.quick)
+        if args.command == "soak":
+            from hil.soak import run_soak
+
+            seconds = args.seconds if args.seconds is not None else 60.0 * args.minutes
+            return run_soak(seconds, args.out, args.scenario, args.window)
         return _run(args)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED

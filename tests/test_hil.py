@@ -179,3 +179,19 @@ def test_known_size_and_sweep_baselines_on_exact_inputs() -> None:
     sharp = np.exp(-(((v - v_true) / 0.05) ** 2))  # Gaussian in v: the log-parabola is exact
     z = sweep_depth(counts.tolist(), sharp.tolist(), lens)
     assert z == pytest.approx(true_z, rel=0.02)
+
+
+@pytest.mark.timeout(120)
+def test_soak_writes_its_figures_and_plot(tmp_path: Path) -> None:
+    out = tmp_path / "soak"
+    assert hil_main(["soak", "--seconds", "4", "--window", "1", "--out", str(out)]) == 0
+    result = json.loads((out / "soak.json").read_text())
+    assert result["estimates"] > 0
+    assert result["start_to_first_estimate_s"] > 0
+    assert result["cpu_pct_one_core"] > 0
+    assert result["rss_mib"]["min"] > 0
+    lat = result["latency_ms"]["exposure_to_subscriber"]
+    assert 0 < lat["p50"] <= lat["p99"] <= lat["max"]
+    assert len(result["windows"]) >= 3
+    assert all(w["estimate_hz"] >= 0 for w in result["windows"])
+    assert (out / "soak.png").stat().st_size > 0

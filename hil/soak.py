@@ -1,0 +1,326 @@
+"""``python -m hil soak --minutes N``: the live daemon on the simulator over a long run.
+
+Starts ``python -m dffd run --no-console`` (simulated camera on a pty, a mosquitto on a free
+loopback port as :mod:`hil.realtime` starts it), subscribes to ``…/estimate`` and
+``…/measurement`` like a user and samples the daemon's ``/proc`` once a second. Reports:
+
+* start → first estimate (process start to the first ``…/estimate`` at the subscriber);
+* RSS slope in MiB/hour (least squares over the samples after ``WARMUP_S``) and min/max;
+* CPU % of one core (utime + stime over the run after the first estimate);
+* exposure → subscriber latency percentiles (reception minus the payload's ``t_mono``) and the
+  daemon's share (minus the simulated capture chain's delivery lag);
+* per window of ``--window`` seconds: estimate and measurement rates, latency p50/p99, CPU %, RSS.
+
+Writes ``soak.json`` and ``soak.png`` into ``--out``. Figures only, no verdicts asserted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# The bench's own helpers (private to their modules today; one place to start a broker, read
+# /proc and know the simulator's delivery lag).
+from hil.benchmarks import _sim_delivery_lag_ms as sim_delivery_lag_ms
+from hil.realtime import (
+    DAEMON_START_TIMEOUT_S,
+    MQTT_CONNECT_TIMEOUT_S,
+    REPO_ROOT,
+)
+from hil.realtime import _cpu_times as cpu_times
+from hil.realtime import _free_port as free_port
+from hil.realtime import _rss_kib as rss_kib
+from hil.realtime import _start_mosquitto as start_mosquitto
+from hil.realtime import _stop as stop_process
+
+# /proc sampling period: RSS moves slowly, one sample a second resolves 0.1 MiB over minutes.
+SAMPLE_PERIOD_S = 1.0
+# Samples before this are start-up (imports, first acquisition, first bursts): not in the slope.
+WARMUP_S = 10.0
+# The broker connection is retried this often while the daemon starts.
+CONNECT_RETRY_S = 0.2
+DEFAULT_WINDOW_S = 60.0
+# Latency samples kept (30 estimates/s for 24 h): bounds this process's own memory.
+MAX_LATENCY_SAMPLES = 30 * 86_400
+MIB = 1024.0
+
+
+@dataclass
+class _Trace:
+    """What the subscriber saw, with monotonic reception times."""
+
+    started: float
+    first_estimate: float | None = None
+    estimates: list[tuple[float, float]] = field(default_factory=list)  # (received, latency s)
+    measurements: list[float] = field(default_factory=list)  # received
+    samples: list[tuple[float, float, int]] = field(default_factory=list)  # (t, cpu s, rss KiB)
+
+
+def run_soak(seconds: float, out_dir: Path, scenario: str = "static", window_s: float = 0) -> int:
+    """Run the soak for ``seconds`` after the first estimate; write soak.json and soak.png."""
+    window = window_s if window_s > 0 else min(DEFAULT_WINDOW_S, max(seconds / 10.0, 1.0))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        trace = asyncio.run(_soak(seconds, scenario, out_dir))
+    except (RuntimeError, TimeoutError) as exc:
+        why = str(exc) or "no estimate in time"
+        print(f"hil soak: {why}; see {out_dir / 'daemon.log'}", file=sys.stderr)
+        return 1
+    result = summarize(trace, seconds, window, sim_delivery_lag_ms())
+    result["scenario"] = scenario
+    (out_dir / "soak.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    plot(result, out_dir / "soak.png")
+    print(format_summary(result))
+    print(f"soak: {out_dir / 'soak.json'}, {out_dir / 'soak.png'}")
+    return 0
+
+
+def summarize(
+    trace: _Trace, seconds: float, window_s: float, delivery_lag_ms: float
+) -> dict[str, Any]:
+    """The soak.json object: totals, RSS slope, latency percentiles and per-window series."""
+    t0 = trace.first_estimate if trace.first_estimate is not None else trace.started
+    samples = [(t - t0, cpu, rss / MIB) for t, cpu, rss in trace.samples if t >= t0]
+    lat = np.array([lat for _, lat in trace.estimates]) * 1e3
+    last = max([r for r, _ in trace.estimates] + [t for t, _, _ in trace.samples], default=t0)
+    run_s = max(last - t0, 0.0)
+    cpu_pct = (
+        100.0 * (samples[-1][1] - samples[0][1]) / (samples[-1][0] - samples[0][0])
+        if len(samples) > 1 and samples[-1][0] > samples[0][0]
+        else None
+    )
+    steady = [(t, rss) for t, _, rss in samples if t >= WARMUP_S]
+    slope = _slope_per_hour(steady)
+    windows = []
+    for start in np.arange(0.0, max(run_s, 0.0), window_s):
+        end = start + window_s
+        est = [lat for r, lat in trace.estimates if start <= r - t0 < end]
+        meas = sum(1 for r in trace.measurements if start <= r - t0 < end)
+        win = [s for s in samples if start <= s[0] <= end]
+        span = min(end, run_s) - start
+        if span < window_s / 2:  # a trailing stub would show rates of a few messages
+            continue
+        w_lat = np.array(est) * 1e3
+        windows.append(
+            {
+                "t_s": float(start),
+                "estimate_hz": len(est) / span,
+                "measurement_hz": meas / span,
+                "latency_p50_ms": _pct(w_lat, 50),
+                "latency_p99_ms": _pct(w_lat, 99),
+                "cpu_pct": 100.0 * (win[-1][1] - win[0][1]) / (win[-1][0] - win[0][0])
+                if len(win) > 1 and win[-1][0] > win[0][0]
+                else None,
+                "rss_mib": win[-1][2] if win else None,
+            }
+        )
+    rss_all = [rss for _, _, rss in samples]
+    return {
+        "schema": 1,
+        "requested_s": seconds,
+        "run_s": run_s,
+        "start_to_first_estimate_s": None
+        if trace.first_estimate is None
+        else trace.first_estimate - trace.started,
+        "estimates": len(trace.estimates),
+        "measurements": len(trace.measurements),
+        "estimate_hz": len(trace.estimates) / run_s if run_s > 0 else None,
+        "cpu_pct_one_core": cpu_pct,
+        "rss_mib": {
+            "min": min(rss_all, default=None),
+            "max": max(rss_all, default=None),
+            "slope_mib_per_hour": slope,
+            "slope_from_s": WARMUP_S,
+            "samples": len(steady),
+        },
+        "latency_ms": {
+            "exposure_to_subscriber": {p: _pct(lat, q) for p, q in _PCTS},
+            "daemon_share": {p: _pct(lat - delivery_lag_ms, q) for p, q in _PCTS},
+            "sim_delivery_lag_ms": delivery_lag_ms,
+        },
+        "window_s": window_s,
+        "windows": windows,
+        "rss_series": [[t, rss] for t, _, rss in samples],
+    }
+
+
+def format_summary(result: dict[str, Any]) -> str:
+    """Human-readable lines of a soak result."""
+
+    def f(v: float | None, fmt: str = ".1f") -> str:
+        return "–" if v is None else format(v, fmt)
+
+    rss = result["rss_mib"]
+    lat = result["latency_ms"]
+    e2s, own = lat["exposure_to_subscriber"], lat["daemon_share"]
+    head = (
+        f"soak {f(result['run_s'])} s: start -> first estimate "
+        f"{f(result['start_to_first_estimate_s'])} s; {result['estimates']} estimates "
+        f"({f(result['estimate_hz'])}/s), {result['measurements']} measurements"
+    )
+    cpu = (
+        f"CPU {f(result['cpu_pct_one_core'])} % of one core; RSS {f(rss['min'])}-"
+        f"{f(rss['max'])} MiB, slope {f(rss['slope_mib_per_hour'], '.2f')} MiB/h "
+        f"(least squares after {rss['slope_from_s']:.0f} s, {rss['samples']} samples)"
+    )
+    latency = (
+        f"exposure -> subscriber p50 {f(e2s['p50'])} p99 {f(e2s['p99'])} ms; "
+        f"daemon's share p50 {f(own['p50'])} p99 {f(own['p99'])} ms "
+        f"(sim delivery lag {lat['sim_delivery_lag_ms']:.1f} ms)"
+    )
+    return "\n".join([head, cpu, latency])
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """RSS (with its fit), CPU %, latency p50/p99 and rates over time, to a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(4, 1, sharex=True, figsize=(10, 10))
+    rss = np.array(result["rss_series"]) if result["rss_series"] else np.zeros((0, 2))
+    wins = result["windows"]
+    tw = [w["t_s"] + result["window_s"] / 2 for w in wins]
+    ax = axes[0]
+    ax.plot(rss[:, 0], rss[:, 1], lw=1, label="RSS")
+    slope = result["rss_mib"]["slope_mib_per_hour"]
+    if slope is not None and len(rss):
+        steady = rss[rss[:, 0] >= WARMUP_S]
+        mid_t, mid_r = steady[:, 0].mean(), steady[:, 1].mean()
+        ax.plot(
+            steady[:, 0],
+            mid_r + slope / 3600.0 * (steady[:, 0] - mid_t),
+            "k--",
+            lw=1,
+            label=f"fit {slope:.2f} MiB/h",
+        )
+    ax.set_ylabel("RSS (MiB)")
+    ax.legend(loc="best", fontsize="small")
+    axes[1].plot(tw, [w["cpu_pct"] for w in wins], marker=".")
+    axes[1].set_ylabel("CPU (% of a core)")
+    axes[2].plot(tw, [w["latency_p50_ms"] for w in wins], marker=".", label="p50")
+    axes[2].plot(tw, [w["latency_p99_ms"] for w in wins], marker=".", label="p99")
+    axes[2].set_ylabel("exposure → sub (ms)")
+    axes[2].legend(loc="best", fontsize="small")
+    axes[3].plot(tw, [w["estimate_hz"] for w in wins], marker=".", label="estimates/s")
+    axes[3].plot(tw, [w["measurement_hz"] for w in wins], marker=".", label="measurements/s")
+    axes[3].set_ylabel("rate (Hz)")
+    axes[3].set_xlabel("t since first estimate (s)")
+    axes[3].legend(loc="best", fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+_PCTS = (("p50", 50), ("p90", 90), ("p99", 99), ("max", 100))
+
+
+def _pct(values: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+def _slope_per_hour(points: list[tuple[float, float]]) -> float | None:
+    """Least-squares slope of (t s, MiB) in MiB/hour."""
+    if len(points) < 3:
+        return None
+    t = np.array([p[0] for p in points])
+    y = np.array([p[1] for p in points])
+    if float(np.ptp(t)) <= 0:
+        return None
+    slope = float(np.polyfit(t, y, 1)[0])
+    return slope * 3600.0 if math.isfinite(slope) else None
+
+
+async def _soak(seconds: float, scenario: str, out_dir: Path) -> _Trace:
+    work = Path(tempfile.mkdtemp(prefix="hil-soak-"))
+    port = free_port()
+    broker = start_mosquitto(work, port)
+    env = dict(os.environ)
+    env["DFFD_MQTT__URL"] = f"mqtt://127.0.0.1:{port}" if broker else "embedded"
+    if broker is None:
+        env["DFFD_MQTT__EMBEDDED_PORT"] = str(port)
+    env.update(
+        {
+            "DFFD_LOG__DIR": str(work / "log"),
+            "DFFD_MQTT__TOPIC_PREFIX": "dffd",
+            "DFFD_CAMERA__DRIVER": "sim",
+            "DFFD_CAPTURE__SOURCE": "sim",
+            "DFFD_SIM__SCENARIO": scenario,
+        }
+    )
+    trace = _Trace(started=time.monotonic())
+    with (out_dir / "daemon.log").open("wb") as log:
+        # The daemon is this repository's own CLI run with this interpreter.
+        daemon = subprocess.Popen(  # noqa: ASYNC220 - started once, stopped in finally
+            [sys.executable, "-m", "dffd", "run", "--no-console"],
+            cwd=REPO_ROOT,
+            env=env,
+            stdout=log,
+            stderr=log,
+        )
+        try:
+            async with asyncio.TaskGroup() as tg:
+                sampler = tg.create_task(_sample(daemon.pid, trace))
+                await _subscribe(daemon, port, trace, seconds)
+                sampler.cancel()
+        finally:
+            stop_process(daemon)
+            if broker is not None:
+                stop_process(broker)
+    return trace
+
+
+async def _sample(pid: int, trace: _Trace) -> None:
+    while True:
+        user, system = cpu_times(pid)
+        trace.samples.append((time.monotonic(), user + system, rss_kib(pid)))
+        await asyncio.sleep(SAMPLE_PERIOD_S)
+
+
+async def _subscribe(
+    daemon: subprocess.Popen[bytes], port: int, trace: _Trace, seconds: float
+) -> None:
+    import aiomqtt
+
+    deadline = trace.started + DAEMON_START_TIMEOUT_S
+    while True:
+        if daemon.poll() is not None:
+            raise RuntimeError(f"the daemon exited with status {daemon.returncode}; see daemon.log")
+        try:
+            async with aiomqtt.Client("127.0.0.1", port, timeout=MQTT_CONNECT_TIMEOUT_S) as client:
+                await client.subscribe("dffd/+/estimate")
+                await client.subscribe("dffd/+/measurement")
+                await _receive(client, trace, seconds)
+                return
+        except aiomqtt.MqttError:
+            if time.monotonic() > deadline:
+                raise RuntimeError("no MQTT broker came up for the daemon") from None
+            await asyncio.sleep(CONNECT_RETRY_S)
+
+
+async def _receive(client: Any, trace: _Trace, seconds: float) -> None:
+    async with asyncio.timeout(DAEMON_START_TIMEOUT_S + seconds + 10.0):
+        async for message in client.messages:
+            now = time.monotonic()
+            if message.topic.value.endswith("/measurement"):
+                trace.measurements.append(now)
+                continue
+            payload = json.loads(bytes(message.payload))
+            if trace.first_estimate is None:
+                trace.first_estimate = now
+            if not payload.get("replayed") and len(trace.estimates) < MAX_LATENCY_SAMPLES:
+                trace.estimates.append((now, now - float(payload["t_mono"])))
+            if now - trace.first_estimate >= seconds:
+                return
