@@ -187,7 +187,8 @@ class _ReferenceTracker(ContourTracker):
 
     def _step(
         self, grad: Any, pts: FloatArray, motion: Motion, relax: float
-    ) -> tuple[BoundaryObservation, tuple[float, float], float]:
+    ) -> tuple[BoundaryObservation, tuple[float, float], float, None]:
+        # no edge samples: the edge moments (focus measure) have their own tests
         cfg = self.config
         n = len(pts)
         c_in = pts.mean(axis=0)
@@ -213,7 +214,7 @@ class _ReferenceTracker(ContourTracker):
                 residual_px=math.nan,
                 ok=False,
             )
-            return bad, centroid_in, r_in
+            return bad, centroid_in, r_in, None
         new_pts = pts + _ref_motion_field(params, d / scale, motion)
         if relax > 0:
             shift = design @ params
@@ -247,7 +248,7 @@ class _ReferenceTracker(ContourTracker):
             ok=ok,
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
         )
-        return obs, centroid_in, r_in
+        return obs, centroid_in, r_in, None
 
     def _ref_search(
         self, grad: Any, pts: FloatArray, normals: FloatArray

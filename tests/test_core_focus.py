@@ -10,7 +10,7 @@ from dffd.core.focus import (
     edge_variance_cost,
     fit_burst,
     focus_cost,
-    observation_cost,
+    frame_cost,
     plan_burst,
 )
 from dffd.core.synthetic import DiscScene, render_disc, render_scene, synthetic_lens
@@ -140,7 +140,7 @@ def _vertex_offset(psf: str, delta: float, measure: str, rng: np.random.Generato
         poly = find_target(img)
         assert poly is not None
         assert tracker.start(img, poly, 0.0)
-        cost = observation_cost(tracker.update(img, 0.0, "similarity"), measure)  # type: ignore[arg-type]
+        cost = frame_cost(tracker.update(img, 0.0, "similarity"), measure)  # type: ignore[arg-type]
         assert cost is not None
         g.append(cost[0])
         s.append(cost[1])
@@ -182,7 +182,7 @@ def test_edge_variance_grows_as_the_blur_variance_on_both_sides_of_focus() -> No
             assert poly is not None
             tracker = ContourTracker(TrackerConfig())
             assert tracker.start(img, poly, 0.0)
-            cost = observation_cost(tracker.update(img, 0.0, "similarity"))
+            cost = frame_cost(tracker.update(img, 0.0, "similarity"))
             assert cost is not None
             values.append(cost[0])
         curvature, linear, _ = np.polyfit(blurs, values, 2)
@@ -200,3 +200,21 @@ def test_edge_variance_cost_pools_normals_by_mass_and_needs_enough_of_them() -> 
     cost = edge_variance_cost(var, np.full(64, 100.0))
     assert cost is not None
     assert cost[0] == pytest.approx(2.0)
+
+
+def test_the_trackers_pooled_cost_equals_the_reference_pooling() -> None:
+    rng = np.random.default_rng(11)
+    img = render_disc(200, 200, (100.3, 99.6), 30.0, 2.5, psf="aberrated", rng=rng)
+    poly = find_target(img)
+    assert poly is not None
+    tracker = ContourTracker(TrackerConfig())
+    assert tracker.start(img, poly, 0.0)
+    obs = tracker.update(img, 0.0, "similarity")
+    pooled = frame_cost(obs)
+    moments = obs.edge_moments()
+    assert moments is not None
+    reference = edge_variance_cost(moments.var, moments.mass, TrackerConfig().trim_fraction)
+    assert pooled is not None
+    assert reference is not None
+    assert pooled == pytest.approx(reference, rel=1e-9)
+    assert frame_cost(obs, "peak_gradient") == focus_cost(obs.peak_sq)

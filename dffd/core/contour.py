@@ -11,10 +11,11 @@ resampled. The same per-normal maxima feed the focus cost (2).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -26,12 +27,12 @@ FloatArray = npt.NDArray[np.float64]
 Motion = Literal["translation", "similarity", "affine"]
 
 # Edge second moment (focus measure, dffd/core/focus.py): the window around each normal's edge is
-# EDGE_WINDOW_SIGMAS times the frame's pooled edge spread, at least EDGE_WINDOW_MIN_PX, and is
-# re-adapted EDGE_WINDOW_PASSES times from the full search line. Chosen on the reference
+# EDGE_WINDOW_SIGMAS times the frame's pooled edge spread, at least EDGE_WINDOW_MIN_PX; the first
+# of EDGE_WINDOW_PASSES passes starts from the shape fit's edge width. Chosen on the reference
 # simulator and synthetic edges (docs/estimation.md), reported on the aberrated lens.
 EDGE_WINDOW_SIGMAS = 3.0
 EDGE_WINDOW_MIN_PX = 2.5
-EDGE_WINDOW_PASSES = 3
+EDGE_WINDOW_PASSES = 2
 
 # Extra border of the per-frame gradient window: the passes after the first move the contour by a
 # pixel or two (measured on the reference simulator), so they reuse the first pass's gradient.
@@ -65,6 +66,45 @@ class TrackerConfig:
     refine_px: float = 0.3
 
 
+class EdgeSamples(NamedTuple):
+    """Gradient samples along the normals of one pass, for the edge moments (focus measure)."""
+
+    bx: npt.NDArray[np.float32]  # (Nl, 2s+1) ∂I/∂x at −s … s px along each normal
+    by: npt.NDArray[np.float32]
+    normals: FloatArray  # (Nl, 2) outward unit normals
+    offset: FloatArray  # (Nl,) edge (peak) position along each normal, px
+    inlier: FloatArray  # (Nl,) 1 for the normals the shape fit kept
+    search_px: int  # s
+    polarity: float  # +1: intensity drops outward
+    trim_fraction: float  # of the normals dropped at each end when pooling
+    sigma2_hint: float  # median log-parabola edge width², px² (first window; NaN: whole line)
+
+
+class EdgeMoments(NamedTuple):
+    """Per-normal edge second moments (px², NaN where unusable), their masses, the pooled cost."""
+
+    var: FloatArray
+    mass: FloatArray
+    cost: tuple[float, float] | None  # (mass-weighted trimmed mean, its standard error)
+
+
+def edge_moments(samples: EdgeSamples) -> EdgeMoments:
+    """Second moment of the edge-derivative profile along every inlier normal, and their pool.
+
+    Blur variances add under convolution whatever the PSF, so the pooled moment grows as
+    ``σ0² + c (v0 − v)²`` (see ``kernels.edge_moments`` for the adapted window).
+    """
+    n = len(samples.offset)
+    var, mass, pooled = np.empty(n), np.empty(n), np.empty(2)
+    kernels.edge_moments(
+        samples.bx, samples.by, samples.normals, samples.polarity, samples.search_px,
+        samples.offset, samples.inlier, samples.sigma2_hint, EDGE_WINDOW_SIGMAS, EDGE_WINDOW_MIN_PX,
+        EDGE_WINDOW_PASSES, samples.trim_fraction, var, mass, pooled,
+    )  # fmt: skip
+    cost = (float(pooled[0]), float(pooled[1])) if math.isfinite(pooled[0]) else None
+    return EdgeMoments(var, mass, cost)
+
+
 @dataclass(frozen=True, slots=True)
 class BoundaryObservation:
     """What one frame tells about the target boundary."""
@@ -77,10 +117,13 @@ class BoundaryObservation:
     residual_px: float  # RMS normal residual of inliers after the fit
     ok: bool  # enough inliers and a plausible shape
     edge_sigma_px: float = math.nan  # Gaussian width of the edge (median over inlier normals)
-    # per normal: second moment (px²) of the edge-derivative profile about its centroid, in a
-    # window adapted to the frame's blur, and the profile's mass (its weight); NaN where unusable
-    edge_var: FloatArray | None = None
-    edge_mass: FloatArray | None = None
+    # the gradient samples along the normals of the pass kept: the focus measure's input, turned
+    # into moments only when a frame's focus cost is wanted (edge_moments)
+    edge_samples: EdgeSamples | None = None
+
+    def edge_moments(self) -> EdgeMoments | None:
+        """The edge second moments of this frame and their focus cost (computed on each call)."""
+        return None if self.edge_samples is None else edge_moments(self.edge_samples)
 
 
 class ContourTracker:
@@ -138,7 +181,7 @@ class ContourTracker:
         obs: BoundaryObservation | None = None
         grad = _GradientCache(gray, self.config.presmooth_sigma_px)
         for _ in range(6):
-            obs, _, _ = self._step(grad, self._points, "affine", relax=0.5)
+            obs, _, _, _ = self._step(grad, self._points, "affine", relax=0.5)
             if not obs.ok:
                 self.reset()
                 return False
@@ -153,17 +196,19 @@ class ContourTracker:
         predicted = self._points + self._velocity * dt
         relax = self.config.relax if motion != "translation" else 0.0
         grad = _GradientCache(gray, self.config.presmooth_sigma_px)
-        obs, c_in, r_in = self._step(grad, predicted, motion, relax)
+        obs, c_in, r_in, samples = self._step(grad, predicted, motion, relax)
         for _ in range(self.config.max_passes - 1):
             if not obs.ok:
                 break
             moved = math.hypot(obs.centroid[0] - c_in[0], obs.centroid[1] - c_in[1])
             if moved + abs(obs.r_px - r_in) <= self.config.refine_px:
                 break
-            again, c_in, r_in = self._step(grad, obs.points, motion, relax)
+            again, c_in, r_in, again_samples = self._step(grad, obs.points, motion, relax)
             if not again.ok:
                 break
-            obs = again
+            obs, samples = again, again_samples
+        if obs.ok and samples is not None:
+            obs = dataclasses.replace(obs, edge_samples=samples)
         if obs.ok:
             if dt > 0:
                 old = self._points.mean(axis=0)
@@ -186,8 +231,8 @@ class ContourTracker:
     # -- one measurement + fit on one image -------------------------------------------------
     def _step(
         self, grad: _GradientCache, pts: FloatArray, motion: Motion, relax: float
-    ) -> tuple[BoundaryObservation, tuple[float, float], float]:
-        """One pass: (observation, centroid of ``pts``, radius_of(``pts``)).
+    ) -> tuple[BoundaryObservation, tuple[float, float], float, EdgeSamples | None]:
+        """One pass: (observation, centroid of ``pts``, radius_of(``pts``), its edge samples).
 
         The per-normal search and the robust fit run in :mod:`dffd.core.kernels`; their NumPy
         reference is kept in tests/test_core_contour.py, which checks them against it.
@@ -220,19 +265,17 @@ class ContourTracker:
         r_in = float(out[kernels.OUT_R_IN])
         inlier_fraction = float(out[kernels.OUT_INLIER_FRACTION])
         if out[kernels.OUT_STATUS] != 0:
-            return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in
+            return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in, None
         edge_sigma2 = float(out[kernels.OUT_EDGE_SIGMA2])
-        edge_var = np.empty(n)
-        edge_mass = np.empty(n)
-        if has_window:
-            kernels.edge_moments(
-                bx, by, ws.normals, self._polarity, s, ws.scratch[kernels.SCRATCH_OFFSET],
-                ws.scratch[kernels.SCRATCH_INLIER], EDGE_WINDOW_SIGMAS, EDGE_WINDOW_MIN_PX,
-                EDGE_WINDOW_PASSES, edge_var, edge_mass,
-            )  # fmt: skip
-        else:
-            edge_var.fill(np.nan)
-            edge_mass.fill(np.nan)
+        samples = (
+            EdgeSamples(
+                bx, by, ws.normals.copy(), ws.scratch[kernels.SCRATCH_OFFSET].copy(),
+                ws.scratch[kernels.SCRATCH_INLIER].copy(), s, self._polarity, cfg.trim_fraction,
+                edge_sigma2,
+            )
+            if has_window
+            else None
+        )  # fmt: skip
         obs = BoundaryObservation(
             points=new_pts,
             centroid=(float(out[kernels.OUT_CX]), float(out[kernels.OUT_CY])),
@@ -242,10 +285,8 @@ class ContourTracker:
             residual_px=float(out[kernels.OUT_RMS]),
             ok=bool(out[kernels.OUT_OK] != 0),
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
-            edge_var=edge_var,
-            edge_mass=edge_mass,
         )
-        return obs, centroid_in, r_in
+        return obs, centroid_in, r_in, samples
 
     def _workspace(self, n: int) -> kernels.Workspace:
         ws = self._ws

@@ -26,7 +26,14 @@ FocusMeasure = Literal["edge_variance", "peak_gradient"]
 DEFAULT_FOCUS_MEASURE: FocusMeasure = "edge_variance"
 
 
-class EdgeSamples(Protocol):
+class _Moments(Protocol):
+    @property
+    def cost(self) -> tuple[float, float] | None:
+        """(g, σ_g) of the pooled edge moments, or None."""
+        ...
+
+
+class FrameFocus(Protocol):
     """What a focus cost reads from a boundary observation (``contour.BoundaryObservation``)."""
 
     @property
@@ -34,14 +41,8 @@ class EdgeSamples(Protocol):
         """Per-normal max ||∇I||² (NaN where no edge)."""
         ...
 
-    @property
-    def edge_var(self) -> npt.NDArray[np.float64] | None:
-        """Per-normal edge second moment, px² (NaN where unusable)."""
-        ...
-
-    @property
-    def edge_mass(self) -> npt.NDArray[np.float64] | None:
-        """Per-normal edge-profile mass (the moment's weight)."""
+    def edge_moments(self) -> _Moments | None:
+        """The pooled edge second moments of the frame (computed on each call)."""
         ...
 
 
@@ -125,7 +126,7 @@ def edge_variance_cost(
     n = len(var)
     if n < 8:
         return None
-    order = np.argsort(var)
+    order = np.argsort(var, kind="stable")
     cut = int(trim_fraction * n)
     keep = order[cut : n - cut] if n - 2 * cut >= 4 else order
     v, w = var[keep], mass[keep]
@@ -139,13 +140,20 @@ def edge_variance_cost(
     return g, se
 
 
-def observation_cost(
-    obs: EdgeSamples, measure: FocusMeasure = DEFAULT_FOCUS_MEASURE, trim_fraction: float = 0.1
+def frame_cost(
+    obs: FrameFocus,
+    measure: FocusMeasure = DEFAULT_FOCUS_MEASURE,
+    trim_fraction: float = 0.1,
 ) -> tuple[float, float] | None:
-    """Focus cost of one frame's boundary observation with the chosen measure."""
+    """Focus cost (g, σ_g) of one tracked frame with the chosen measure, or None.
+
+    ``edge_variance``: the edge moments pooled with the tracker's own ``trim_fraction`` (same
+    pooling as :func:`edge_variance_cost`, in its compiled kernel); ``peak_gradient``: (2).
+    """
     if measure == "peak_gradient":
         return focus_cost(obs.peak_sq, trim_fraction)
-    return edge_variance_cost(obs.edge_var, obs.edge_mass, trim_fraction)
+    moments = obs.edge_moments()
+    return None if moments is None else moments.cost
 
 
 def fit_burst(
