@@ -54,13 +54,11 @@ from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import focus_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError
+from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from drivers.sim.resources import reference_camera_file
 
 _LOGGER = logging.getLogger(__name__)
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
 
 DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 10.0, 20.0)
 COARSE_POINTS = 33  # focus settings of the coarse sweep over the whole range
@@ -123,37 +121,11 @@ class Rig(Protocol):
         ...
 
 
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``dffd calibrate`` options."""
-    parser.add_argument(
-        "--config", type=Path, metavar="FILE",
-        help="lab procedure: the service config naming camera.port, capture.device and "
-        "lens.file (focal length, pixel pitch); an operator places the target at each depth",
-    )  # fmt: skip
-    parser.add_argument("--sim", action="store_true", help="calibrate the simulated camera")
-    parser.add_argument(
-        "--sim-config", type=Path, default=None, metavar="FILE",
-        help="simulated-camera TOML (default: the reference camera in drivers/sim/data/)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--depths", default=",".join(str(z) for z in DEFAULT_DEPTHS_M), metavar="Z1,Z2,…",
-        help="known target depths in metres",
-    )  # fmt: skip
-    parser.add_argument("--out", type=Path, metavar="FILE", help="write the lens TOML here")
-    parser.add_argument("--name", default="calibrated", help="lens name in the TOML file")
-    parser.description = (
-        "Fit the focus counts <-> v table from focus sweeps with the target at known depths and "
-        "measure the capture latency. --sim: the simulated camera. --config FILE: the real "
-        "camera (serial port + video device of FILE); you are prompted to place the target at "
-        "each depth. Same procedure either way; see the module docstring."
-    )
-    parser.epilog = "Exit codes: 0 written, 1 calibration failed, 2 usage/config error."
-
-
 def run(args: argparse.Namespace) -> int:
     """Calibrate; print the table and the latency; return the exit code."""
     try:
-        depths = sorted({float(z) for z in args.depths.split(",") if z.strip()})
+        text = args.depths or ",".join(str(z) for z in DEFAULT_DEPTHS_M)
+        depths = sorted({float(z) for z in text.split(",") if z.strip()})
     except ValueError:
         print(f"dffd calibrate: --depths {args.depths!r} is not a list of numbers", file=sys.stderr)
         return EXIT_USAGE
@@ -550,7 +522,6 @@ __all__ = [
     "Rig",
     "SimRig",
     "calibrate",
-    "configure_parser",
     "lens_from_points",
     "lens_toml",
     "measure_latency",

@@ -24,57 +24,14 @@ import numpy as np
 from dffd.config import ConfigError, load_config
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
+from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.recording import RecordingError, RecordingReader, Truth
 from dffd.step import CoreStep
 from dffd.wiring import pipeline_config
 
 logger = logging.getLogger(__name__)
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
 SCHEMA = 1
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``dffd replay``."""
-    parser.add_argument("run", type=Path, help="recording directory (meta.json, frames.csv, …)")
-    parser.add_argument("--out", type=Path, required=True, help="estimates, one JSON per line")
-    parser.add_argument(
-        "--config",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="service config TOML whose [estimators]/[target] configure the core "
-        "(default: the built-in default configuration, as dffd run)",
-    )
-    parser.add_argument("--summary", type=Path, help="write the error summary (needs truth.csv)")
-    parser.add_argument("--plot", type=Path, help="write a PNG plot of depths and errors")
-    parser.add_argument(
-        "--settle",
-        type=float,
-        default=None,
-        help="settling time (s) before steady-state statistics (default 5)",
-    )
-    parser.add_argument(
-        "--known-size",
-        type=float,
-        default=None,
-        metavar="M",
-        help="target size in metres (enables CF1; default: [target] known_size_m)",
-    )
-    parser.add_argument(
-        "--best",
-        choices=ESTIMATORS,
-        default=None,
-        help="estimator reported as best (default: [estimators] best)",
-    )
-    parser.add_argument(
-        "--roi",
-        default=None,
-        metavar="X,Y,W,H",
-        help="acquire the target inside this ROI instead of automatically (default: [target] roi)",
-    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -216,21 +216,6 @@ def report(
     return EXIT_OK
 
 
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Options of ``dffd devices``."""
-    parser.add_argument(
-        "--name",
-        default=DEFAULT_LINK_NAME,
-        help=f"symlink the udev rule creates in /dev (default {DEFAULT_LINK_NAME})",
-    )
-    parser.add_argument(
-        "--group",
-        default=DEFAULT_GROUP,
-        help=f"group owning the serial port (default {DEFAULT_GROUP})",
-    )
-    parser.add_argument("--sysfs-root", type=Path, default=SYSFS_USB, help=argparse.SUPPRESS)
-
-
 def run(args: argparse.Namespace) -> int:
     """Run ``dffd devices``."""
     return report(

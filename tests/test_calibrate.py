@@ -13,13 +13,13 @@ from dffd.calibrate import (
     LabRig,
     SimRig,
     calibrate,
-    configure_parser,
     lens_from_points,
     measure_latency,
     run,
     sharpest,
     vertex,
 )
+from dffd.cli.arguments import configure_calibrate
 from dffd.config import load_config
 from dffd.core.lens import Lens
 from dffd.resources import lens_table
@@ -77,7 +77,7 @@ async def test_the_procedure_places_the_target_at_each_depth_in_order() -> None:
 
 def test_cli_writes_a_loadable_lens_file(tmp_path: Path) -> None:
     parser = argparse.ArgumentParser()
-    configure_parser(parser)
+    configure_calibrate(parser)
     out = tmp_path / "lens.toml"
     args = parser.parse_args(["--sim", "--depths", "2,5,12", "--out", str(out)])
     assert run(args) == 0
@@ -93,7 +93,7 @@ def test_lab_mode_needs_a_visca_camera_and_a_video_device(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     parser = argparse.ArgumentParser()
-    configure_parser(parser)
+    configure_calibrate(parser)
     sim_only = tmp_path / "sim.toml"
     sim_only.write_text("[camera]\ndriver = 'sim'\n", encoding="utf-8")
     assert run(parser.parse_args(["--config", str(sim_only), "--depths", "2,5"])) == 2

@@ -13,10 +13,12 @@ from dffd import cli
 from dffd.config import (
     ConfigError,
     DffdConfig,
-    MqttConfig,
-    WebConfig,
+    MqttSection,
+    WebSection,
     load_config,
-    missing_files,
+)
+from dffd.config import (
+    problems as config_problems,
 )
 from dffd.resources import default_config_file, lens_table
 from drivers.sim.resources import world_file
@@ -81,7 +83,7 @@ def test_embedded_default_file_equals_the_fields_defaults(tmp_path: Path) -> Non
     assert embedded.web.listen == "127.0.0.1:8080"
     empty = load_config(write(tmp_path, ""))
     assert empty.web.listen is None
-    assert empty == embedded.model_copy(update={"web": WebConfig()})
+    assert empty == embedded.model_copy(update={"web": WebSection()})
     assert load_config(default_config_file()) == embedded
 
 
@@ -146,7 +148,7 @@ dir = "logs"
     ],
 )
 def test_mqtt_url_forms(url: str, host: str, port: int, tls: bool) -> None:
-    endpoint = MqttConfig(url=url).endpoint
+    endpoint = MqttSection(url=url).endpoint
     assert (endpoint.host, endpoint.port, endpoint.tls, endpoint.embedded) == (
         host,
         port,
@@ -273,7 +275,7 @@ def test_missing_files_and_password(tmp_path: Path) -> None:
     )
     assert config.mqtt.password_file == secret
     assert config.mqtt.read_password() == "hunter2"
-    assert missing_files(config) == [
+    assert config_problems(config, devices=False) == [
         f"lens.file: {tmp_path / 'no.toml'} does not exist; create it or fix the path"
     ]
     secret.write_bytes(b"\xffpw\n")
@@ -308,11 +310,52 @@ def test_check_config_invalid_exits_2(capsys: pytest.CaptureFixture[str], tmp_pa
     assert "mqtt.url: 'mqtt:/x' is not embedded, mqtt://host:port or mqtts://host:port" in err
 
 
-def test_check_config_missing_files(capsys: pytest.CaptureFixture[str]) -> None:
-    lab = str(CONFIG_DIR / "lab-evi-d100.toml")
-    assert cli.main(["check-config", lab]) == 0  # valid; missing files are warnings…
-    assert "warning: mqtt.password_file" in capsys.readouterr().err
-    assert cli.main(["check-config", "--check-files", lab]) == 2  # …or errors on request
+def test_check_config_missing_files_are_errors(capsys: pytest.CaptureFixture[str]) -> None:
+    lab = str(CONFIG_DIR / "lab-evi-d100.toml")  # names /etc/dffd files absent here
+    assert cli.main(["check-config", lab]) == 2
+    err = capsys.readouterr().err
+    assert "mqtt.password_file: /etc/dffd/mqtt-password does not exist" in err
+    assert "warning" not in err
+
+
+VISCA_V4L2 = (
+    '[camera]\ndriver = "visca"\nport = "PORTURL"\n[capture]\nsource = "v4l2"\ndevice = "VIDEO"\n'
+)
+
+
+@pytest.mark.parametrize(
+    ("text", "expected", "with_devices"),
+    [
+        # Cross-field rule: the simulator's frames need the simulated camera.
+        ('[camera]\ndriver = "visca"\nport = "PORT"\n[capture]\nsource = "sim"\n',
+         "capture.source: 'sim' needs camera.driver = 'sim'", False),
+        ('[lens]\nfile = "absent.toml"\n', "lens.file: ", False),
+        ('[lens]\nfile = "absent"\n', "lens.file: no packaged lens table 'absent'", False),
+        (VISCA_V4L2.replace("PORTURL", "PORT"), "camera.port: ", True),
+        (VISCA_V4L2.replace("PORTURL", "serial://PORT?baud=9600"), "capture.device: ", True),
+    ],
+)  # fmt: skip
+def test_check_config_finds_what_stops_run_with_the_same_code(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    text: str,
+    expected: str,
+    with_devices: bool,
+) -> None:
+    port, video = tmp_path / "ttyUSB9", tmp_path / "video9"
+    if "camera.port" not in expected:
+        port.touch()  # only the device under test is missing
+    if "capture.device" not in expected:
+        video.touch()
+    path = write(tmp_path, text.replace("PORT", str(port)).replace("VIDEO", str(video)))
+    flags = ["--check-files"] if with_devices else []
+    if with_devices:
+        assert cli.main(["check-config", str(path)]) == 0  # devices: only on request
+        capsys.readouterr()
+    assert cli.main(["check-config", *flags, str(path)]) == 2
+    assert expected in capsys.readouterr().err
+    assert cli.main(["run", "--config", str(path), "--no-console"]) == 2  # refused alike
+    assert expected in capsys.readouterr().err
 
 
 def test_scenario_is_a_packaged_world_or_a_path_next_to_the_file(tmp_path: Path) -> None:
@@ -324,7 +367,7 @@ def test_scenario_is_a_packaged_world_or_a_path_next_to_the_file(tmp_path: Path)
     path = write(tmp_path / "sub", '[sim]\nscenario = "mine.toml"\n')
     config = load_config(path)
     assert config.sim.scenario_file == tmp_path / "sub" / "mine.toml"
-    assert missing_files(config) == [
+    assert config_problems(config, devices=False) == [
         f"sim.scenario: {tmp_path / 'sub' / 'mine.toml'} does not exist; create it or fix the path"
     ]
 

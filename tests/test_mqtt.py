@@ -20,7 +20,7 @@ import jsonschema
 import pytest
 from pydantic import ValidationError
 
-from dffd.config import MqttConfig
+from dffd.config import MqttSection
 from dffd.mqtt import schemas
 from dffd.mqtt.models import (
     Acquire,
@@ -234,7 +234,7 @@ def test_command_parsing_and_schema() -> None:
 def test_settings_from_config_reads_password(tmp_path: Path) -> None:
     secret = tmp_path / "pw"
     secret.write_text("s3cret\n", encoding="utf-8")
-    config = MqttConfig(
+    config = MqttSection(
         url="mqtts://broker.lab:8884", username="dffd", password_file=secret, ca_file=secret
     )
     s = PublisherSettings.from_config(config)

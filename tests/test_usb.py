@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import usb.core
 
+from dffd.cli.arguments import configure_devices
 from drivers import usb as devices
 from drivers.usb import UsbDevice, discover, discover_sysfs, report, udev_rule
 
@@ -176,7 +177,7 @@ def test_udev_rule_text() -> None:
 
 def test_subcommand_parser_defaults() -> None:
     parser = argparse.ArgumentParser()
-    devices.configure_parser(parser)
+    configure_devices(parser)
     args = parser.parse_args(["--name", "visca1"])
     assert args.name == "visca1"
     assert args.group == "dialout"

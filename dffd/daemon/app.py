@@ -63,7 +63,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ValidationError
 
 from dffd import __version__
-from dffd.config import ConfigError, DffdConfig, load_config, missing_files
+from dffd.config import ConfigError, DffdConfig, load_config, problems
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
@@ -73,6 +73,7 @@ from dffd.daemon.actuators import Actuators
 from dffd.daemon.console import Console, ConsoleSnapshot
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
 from dffd.daemon.notify import Notifier
+from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
 from dffd.mqtt.topics import Topics
@@ -86,9 +87,6 @@ from drivers.visca.link import ViscaLink
 
 _LOGGER = logging.getLogger(__name__)
 
-EXIT_OK = 0
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
 
 # -- named timings and bounds -----------------------------------------------------------------
 # Whole shutdown (stop pan/tilt, offline status, log flush, thread join): systemd's default
@@ -137,34 +135,6 @@ class DaemonError(RuntimeError):
 
 
 # -- CLI ----------------------------------------------------------------------------------------
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Add the ``dffd run`` options."""
-    parser.add_argument(
-        "--config",
-        type=Path,
-        metavar="FILE",
-        help="TOML configuration (default: built-in: simulated camera, embedded broker)",
-    )
-    parser.add_argument(
-        "--no-console",
-        action="store_true",
-        help="no live console view; log a status line every second instead",
-    )
-    parser.add_argument(
-        "--sim-faults",
-        metavar="SPEC",
-        default="",
-        help="seeded serial faults in the simulated camera (tests, demos), e.g. "
-        '"seed=3,drop=0.01,lose_completion=0.05" (keys as dffd sim-camera --faults)',
-    )
-    parser.add_argument(
-        "--duration",
-        type=float,
-        metavar="SECONDS",
-        help="stop by itself after this many seconds (demos, benchmarks)",
-    )
-
-
 def run(args: argparse.Namespace) -> int:
     """Run until SIGTERM/SIGINT (or ``--duration``); return the exit code."""
     try:
@@ -172,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"dffd run: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    missing = missing_files(config)
+    missing = problems(config, devices=True)
     if missing:
         print("dffd run: " + "; ".join(missing), file=sys.stderr)
         return EXIT_USAGE
@@ -1102,6 +1072,5 @@ __all__ = [
     "EstimatorResult",
     "EstimatorThread",
     "RateMeter",
-    "configure_parser",
     "run",
 ]

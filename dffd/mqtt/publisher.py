@@ -37,7 +37,7 @@ import aiomqtt
 from pydantic import ValidationError
 
 from dffd import __version__
-from dffd.config import MqttConfig
+from dffd.config import MqttSection
 from dffd.mqtt.models import (
     COMMAND_ADAPTER,
     COMMAND_NAMES,
@@ -112,7 +112,7 @@ class PublisherSettings:
     connect_timeout_s: float = CONNECT_TIMEOUT_S
 
     @classmethod
-    def from_config(cls, config: MqttConfig) -> PublisherSettings:
+    def from_config(cls, config: MqttSection) -> PublisherSettings:
         """From ``[mqtt]``; reads the password file (raises ConfigError if unreadable)."""
         endpoint = config.endpoint
         return cls(

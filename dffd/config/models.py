@@ -1,82 +1,51 @@
-"""Typed configuration: pydantic models loaded from TOML with ``DFFD_<SECTION>__<KEY>`` overrides.
+"""The configuration's pydantic models: one section per TOML table, ``DffdConfig`` the whole.
 
-DESIGN §9. ``load_config(path)`` is the only way the rest of the service gets its settings; every
-field has a default and a range, unknown keys are errors, and a bad file produces a
-:class:`ConfigError` that names each bad field by its dotted path (``mqtt.url``) and says what is
-allowed. Environment variables win over the file (``DFFD_MQTT__URL=mqtt://127.0.0.1:18883``).
-
-Relative paths written in a config file are resolved against that file's directory; relative
-paths from the environment against the working directory. ``[lens] file`` may also name a lens
-table shipped in the package (``sim-evi-d100``) and ``[sim] scenario`` a world shipped with the
-simulator (``paper-circle``): see :mod:`dffd.resources` and :mod:`drivers.sim.resources`. All
-paths are absolute after loading. Without a file, the embedded default
-(``dffd/defaults/dffd.toml``, package data) is loaded.
-
-This module is also the ``dffd check-config FILE`` subcommand (exit 0 valid, 2 invalid).
+Every field has a default and a range; unknown keys are errors. Sections are named ``…Section``
+(``SchedulerSection``) so they never share a name with the dataclasses the core and the scheduler
+are configured with (``dffd.scheduler.SchedulerConfig``); ``dffd.wiring`` turns one into the other.
+Cross-field rules are validators here, so ``dffd check-config`` and ``dffd run`` refuse the same
+files. Build a ``DffdConfig`` with :func:`dffd.config.load_config`.
 """
 
 from __future__ import annotations
 
-import argparse
-import difflib
 import json
-import os
 import re
-import sys
-import tomllib
-from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
-import annotated_types
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    ValidationError,
-    field_validator,
-    model_validator,
-)
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
-from dffd.resources import (
-    DEFAULT_LENS,
-    ResourceNotFoundError,
-    default_config_file,
-    is_lens_name,
-    lens_table,
-)
+from dffd.config.explain import ENV_NESTED_DELIMITER, ENV_PREFIX, ConfigError, show_value
+from dffd.literals import BestEstimator, BurstMode, BurstPolicy, PanTiltMode
+from dffd.resources import DEFAULT_LENS, ResourceNotFoundError, is_lens_name, lens_table
 from dffd.web.listen import WebConfigError, is_loopback, parse_listen
 from drivers.sim.resources import world_file, world_names
 
 __all__ = [
+    "DEFAULT_MQTTS_PORT",
+    "DEFAULT_MQTT_PORT",
+    "EMBEDDED_HOST",
+    "ENV_NESTED_DELIMITER",
     "ENV_PREFIX",
-    "CameraConfig",
-    "CaptureConfig",
-    "ConfigError",
+    "CameraSection",
+    "CaptureSection",
     "DffdConfig",
-    "EstimatorsConfig",
-    "LensConfig",
-    "LogConfig",
-    "MqttConfig",
+    "EstimatorsSection",
+    "LensSection",
+    "LogLevel",
+    "LogSection",
     "MqttEndpoint",
-    "SchedulerConfig",
-    "SimConfig",
-    "TargetConfig",
-    "WebConfig",
-    "configure_parser",
-    "load_config",
-    "missing_files",
-    "run",
+    "MqttSection",
+    "SchedulerSection",
+    "SimSection",
+    "TargetSection",
+    "WebSection",
 ]
 
-ENV_PREFIX = "DFFD_"
-ENV_NESTED_DELIMITER = "__"
-
-EXIT_OK = 0
-EXIT_INVALID = 2
 
 _CAMERA_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 _TOPIC_PREFIX_RE = re.compile(r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*")
@@ -88,21 +57,7 @@ DEFAULT_MQTT_PORT = 1883  # IANA port for MQTT
 DEFAULT_MQTTS_PORT = 8883  # IANA port for MQTT over TLS
 EMBEDDED_HOST = "127.0.0.1"  # the embedded broker never listens beyond loopback
 
-EstimatorName = Literal["lpv", "kf", "cf2", "cf1"]
-BurstPolicy = Literal["every_n", "sigma"]
-BurstMode = Literal["rolling", "classic"]
-PanTiltMode = Literal["drive", "absolute", "off"]
 LogLevel = Literal["DEBUG", "INFO", "WARNING", "ERROR"]
-
-
-class ConfigError(ValueError):
-    """Invalid configuration; ``problems`` holds one ``dotted.path: what to do`` per field."""
-
-    def __init__(self, problems: Sequence[str], source: str = "configuration") -> None:
-        self.problems = list(problems)
-        self.source = source
-        lines = "\n".join(f"  - {p}" for p in self.problems)
-        super().__init__(f"invalid {source}:\n{lines}")
 
 
 class _Section(BaseModel):
@@ -118,7 +73,7 @@ def _value_error(message: str) -> PydanticCustomError:
     return PydanticCustomError("dffd", "{message}", {"message": message})
 
 
-class CameraConfig(_Section):
+class CameraSection(_Section):
     """``[camera]``: which camera and how to reach it."""
 
     name: str = Field(default="sim", description="camera name, used in topics dffd/<name>/…")
@@ -141,7 +96,7 @@ class CameraConfig(_Section):
         return value
 
     @model_validator(mode="after")
-    def _visca_needs_port(self) -> CameraConfig:
+    def _visca_needs_port(self) -> CameraSection:
         if self.driver == "visca" and not self.port:
             raise _field_error(
                 "port", "required when camera.driver is 'visca' (e.g. /dev/visca0 or /dev/ttyUSB0)"
@@ -149,7 +104,7 @@ class CameraConfig(_Section):
         return self
 
 
-class CaptureConfig(_Section):
+class CaptureSection(_Section):
     """``[capture]``: the frame source."""
 
     source: Literal["sim", "v4l2"] = "sim"
@@ -174,7 +129,7 @@ class CaptureConfig(_Section):
         return value
 
     @model_validator(mode="after")
-    def _v4l2_needs_device(self) -> CaptureConfig:
+    def _v4l2_needs_device(self) -> CaptureSection:
         if self.source == "v4l2" and self.device is None:
             raise _field_error(
                 "device", "required when capture.source is 'v4l2' (e.g. /dev/video0 or 0)"
@@ -182,7 +137,7 @@ class CaptureConfig(_Section):
         return self
 
 
-class LensConfig(_Section):
+class LensSection(_Section):
     """``[lens]``: the focus calibration table and the fixed zoom it was measured at."""
 
     file: Path = Field(
@@ -205,7 +160,7 @@ class LensConfig(_Section):
             raise _value_error(str(exc)) from None
 
 
-class SchedulerConfig(_Section):
+class SchedulerSection(_Section):
     """``[scheduler]``: when to take bursts, how to acquire and keep the target centred."""
 
     burst_policy: BurstPolicy = "every_n"
@@ -255,10 +210,10 @@ class SchedulerConfig(_Section):
     )
 
 
-class EstimatorsConfig(_Section):
+class EstimatorsSection(_Section):
     """``[estimators]``: which estimate is ``best`` and the noise model (DESIGN §3)."""
 
-    best: EstimatorName = "lpv"
+    best: BestEstimator = "lpv"
     sigma_psi: Annotated[float, Field(gt=0, le=100)] = Field(
         default=0.05, description="σψ: noise intensity of the size-derived depth rate ψ_m"
     )
@@ -272,7 +227,7 @@ class EstimatorsConfig(_Section):
     lpv_rho_max_per_s: Annotated[float, Field(ge=-100, le=100)] = 2.0
 
     @model_validator(mode="after")
-    def _rho_range_ordered(self) -> EstimatorsConfig:
+    def _rho_range_ordered(self) -> EstimatorsSection:
         if self.lpv_rho_min_per_s >= self.lpv_rho_max_per_s:
             raise _field_error(
                 "lpv_rho_max_per_s",
@@ -281,7 +236,7 @@ class EstimatorsConfig(_Section):
         return self
 
 
-class TargetConfig(_Section):
+class TargetSection(_Section):
     """``[target]``: optional prior knowledge of the target."""
 
     known_size_m: Annotated[float, Field(gt=0, le=10)] | None = Field(
@@ -302,7 +257,8 @@ class TargetConfig(_Section):
     def _roi_shape(cls, value: object) -> object:
         if value is not None and (not isinstance(value, list | tuple) or len(value) != 4):
             raise _value_error(
-                f"{_show(value)} is not [x, y, w, h]; give four integers in pixels, w and h > 0"
+                f"{show_value(value)} is not [x, y, w, h]; "
+                "give four integers in pixels, w and h > 0"
             )
         return value
 
@@ -317,7 +273,7 @@ class MqttEndpoint:
     embedded: bool
 
 
-class MqttConfig(_Section):
+class MqttSection(_Section):
     """``[mqtt]``: the broker and the client's behaviour during outages."""
 
     url: str = Field(
@@ -364,7 +320,7 @@ class MqttConfig(_Section):
         return value
 
     @model_validator(mode="after")
-    def _consistent(self) -> MqttConfig:
+    def _consistent(self) -> MqttSection:
         if self.password_file is not None and self.username is None:
             raise _field_error("username", "required when mqtt.password_file is set")
         if (self.certfile is None) != (self.keyfile is None):
@@ -421,7 +377,7 @@ class MqttConfig(_Section):
         return lines[0].strip() if lines else ""
 
 
-class LogConfig(_Section):
+class LogSection(_Section):
     """``[log]``: the durable JSONL log and the service's log level."""
 
     dir: Path = Field(
@@ -437,7 +393,7 @@ class LogConfig(_Section):
         return value.upper() if isinstance(value, str) else value
 
 
-class SimConfig(_Section):
+class SimSection(_Section):
     """``[sim]``: the simulated camera and world used when camera.driver is 'sim'."""
 
     scenario: str = Field(
@@ -477,7 +433,7 @@ class SimConfig(_Section):
         return Path(self.scenario)
 
 
-class WebConfig(_Section):
+class WebSection(_Section):
     """``[web]``: the dashboard and Prometheus ``/metrics`` (off unless ``listen`` is set)."""
 
     listen: str | None = Field(
@@ -500,7 +456,7 @@ class WebConfig(_Section):
         return value
 
     @model_validator(mode="after")
-    def _token_beyond_loopback(self) -> WebConfig:
+    def _token_beyond_loopback(self) -> WebSection:
         if self.listen is not None and self.token_file is None:
             host, _ = parse_listen(self.listen)
             if not is_loopback(host):
@@ -525,16 +481,16 @@ class DffdConfig(BaseSettings):
         validate_default=True,
     )
 
-    camera: CameraConfig = CameraConfig()
-    capture: CaptureConfig = CaptureConfig()
-    lens: LensConfig = LensConfig()
-    scheduler: SchedulerConfig = SchedulerConfig()
-    estimators: EstimatorsConfig = EstimatorsConfig()
-    target: TargetConfig = TargetConfig()
-    mqtt: MqttConfig = MqttConfig()
-    log: LogConfig = LogConfig()
-    sim: SimConfig = SimConfig()
-    web: WebConfig = WebConfig()
+    camera: CameraSection = CameraSection()
+    capture: CaptureSection = CaptureSection()
+    lens: LensSection = LensSection()
+    scheduler: SchedulerSection = SchedulerSection()
+    estimators: EstimatorsSection = EstimatorsSection()
+    target: TargetSection = TargetSection()
+    mqtt: MqttSection = MqttSection()
+    log: LogSection = LogSection()
+    sim: SimSection = SimSection()
+    web: WebSection = WebSection()
 
     @classmethod
     def settings_customise_sources(
@@ -569,6 +525,17 @@ class DffdConfig(BaseSettings):
                     "(camera.driver = 'sim'); use source = 'sim' or driver = 'visca'",
                 },
             )
+        if self.camera.driver == "visca" and self.capture.source == "sim":
+            raise PydanticCustomError(
+                "dffd_path",
+                "{message}",
+                {
+                    "path": "capture.source",
+                    "message": "'sim' needs camera.driver = 'sim' (the simulator renders what its "
+                    "own camera sees); with a real camera use source = 'v4l2' and set "
+                    "capture.device",
+                },
+            )
         return self
 
     def to_toml(self) -> str:
@@ -584,247 +551,6 @@ class DffdConfig(BaseSettings):
                 else:
                     out.append(f"{key} = {_toml_value(value)}")
         return "\n".join(out) + "\n"
-
-
-def load_config(path: Path | None = None) -> DffdConfig:
-    """Load ``path`` (None: the embedded default) plus ``DFFD_…`` environment overrides.
-
-    Raises ConfigError naming every bad field by its dotted path and saying what is allowed.
-    """
-    source = str(path) if path is not None else "embedded default configuration"
-    file = path if path is not None else default_config_file()
-    data = _read_toml(file)
-    try:
-        config = DffdConfig(**data)
-    except ValidationError as exc:
-        raise ConfigError(list(_describe_errors(exc, data)), source) from None
-    return _resolve_paths(config, data, file.resolve().parent)
-
-
-def missing_files(config: DffdConfig) -> list[str]:
-    """Files the configuration names that do not exist here, as ``dotted.path: message`` lines."""
-    named: list[tuple[str, Path | None]] = [
-        ("lens.file", config.lens.file),
-        ("mqtt.password_file", config.mqtt.password_file),
-        ("mqtt.ca_file", config.mqtt.ca_file),
-        ("mqtt.certfile", config.mqtt.certfile),
-        ("mqtt.keyfile", config.mqtt.keyfile),
-        ("sim.camera_config", config.sim.camera_config),
-        ("sim.scenario", config.sim.scenario_file),
-        ("web.token_file", config.web.token_file),
-    ]
-    return [
-        f"{dotted}: {file} does not exist; create it or fix the path"
-        for dotted, file in named
-        if file is not None and not file.is_file()
-    ]
-
-
-# -- dffd check-config ------------------------------------------------------------------------
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``dffd check-config``."""
-    parser.add_argument("file", type=Path, metavar="FILE", help="TOML configuration file")
-    parser.add_argument(
-        "--json", action="store_true", help="print the resolved configuration as JSON"
-    )
-    parser.add_argument(
-        "--check-files",
-        action="store_true",
-        help="also fail (exit 2) when a file the config names (lens table, password…) is missing",
-    )
-    parser.epilog = (
-        f"Environment variables {ENV_PREFIX}<SECTION>__<KEY> override the file. "
-        "Exit codes: 0 valid, 2 invalid."
-    )
-
-
-def run(args: argparse.Namespace) -> int:
-    """Validate ``args.file``; print the resolved config (stdout) or the errors (stderr)."""
-    try:
-        config = load_config(args.file)
-    except ConfigError as exc:
-        print(f"dffd check-config: {exc}", file=sys.stderr)
-        return EXIT_INVALID
-    absent = missing_files(config)
-    for line in absent:
-        print(f"dffd check-config: warning: {line}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(config.model_dump(mode="json"), indent=2))
-    else:
-        print(config.to_toml(), end="")
-    return EXIT_INVALID if absent and args.check_files else EXIT_OK
-
-
-# -- private helpers --------------------------------------------------------------------------
-
-
-_PATH_FIELDS: tuple[tuple[str, str], ...] = (
-    ("lens", "file"),
-    ("mqtt", "password_file"),
-    ("mqtt", "ca_file"),
-    ("mqtt", "certfile"),
-    ("mqtt", "keyfile"),
-    ("log", "dir"),
-    ("sim", "camera_config"),
-    ("web", "token_file"),
-)
-
-
-def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(
-            [f"cannot read {path}: {exc.strerror}; check the path"],
-            str(path),
-        ) from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(
-            [f"not valid TOML: {exc} (a TOML file must be UTF-8 text; re-save it as UTF-8)"],
-            str(path),
-        ) from None
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError([f"not valid TOML: {exc}"], str(path)) from None
-
-
-def _resolve_paths(config: DffdConfig, data: Mapping[str, Any], base: Path) -> DffdConfig:
-    """Make every path absolute: file values against ``base``, env/defaults against the cwd."""
-    updates: dict[str, BaseModel] = {}
-    for section, key in _PATH_FIELDS:
-        model: BaseModel = updates.get(section) or getattr(config, section)
-        value = getattr(model, key)
-        if value is None:
-            continue
-        value = Path(value).expanduser()
-        if not value.is_absolute():
-            from_file = isinstance(data.get(section), dict) and key in data[section]
-            from_env = _env_name(section, key) in _environ_upper()
-            anchor = base if from_file and not from_env else Path.cwd()
-            value = anchor / value
-        updates[section] = model.model_copy(update={key: value})
-    sim: SimConfig = updates.get("sim") or config.sim  # type: ignore[assignment]
-    if sim.scenario not in world_names() and not Path(sim.scenario).is_absolute():
-        from_file = isinstance(data.get("sim"), dict) and "scenario" in data["sim"]
-        from_env = _env_name("sim", "scenario") in _environ_upper()
-        anchor = base if from_file and not from_env else Path.cwd()
-        resolved = str(anchor / Path(sim.scenario).expanduser())
-        updates["sim"] = sim.model_copy(update={"scenario": resolved})
-    return config.model_copy(update=updates)
-
-
-def _environ_upper() -> set[str]:
-    return {name.upper() for name in os.environ}
-
-
-def _env_name(section: str, key: str) -> str:
-    return f"{ENV_PREFIX}{section}{ENV_NESTED_DELIMITER}{key}".upper()
-
-
-def _describe_errors(exc: ValidationError, data: Mapping[str, Any]) -> Iterator[str]:
-    env = _environ_upper()
-    for error in exc.errors(include_url=False):
-        loc = tuple(str(part) for part in error["loc"])
-        ctx = error.get("ctx") or {}
-        if error["type"] == "dffd_path":
-            loc = tuple(str(ctx["path"]).split("."))
-        elif error["type"] == "dffd_field":
-            loc = (*loc, str(ctx["field"]))
-        path = ".".join(loc) or "(top level)"
-        line = f"{path}: {_explain(error, loc)}"
-        if len(loc) >= 2 and _env_name(loc[0], loc[1]) in env:
-            line += f" (from environment variable {_env_name(loc[0], loc[1])})"
-        elif len(loc) == 1 and loc[0] not in data and error["type"] == "extra_forbidden":
-            line += " (from the environment)"
-        yield line
-
-
-def _explain(error: Any, loc: tuple[str, ...]) -> str:
-    kind: str = error["type"]
-    value = error.get("input")
-    ctx = error.get("ctx") or {}
-    shown = _show(value)
-    if kind in {"dffd", "dffd_field", "dffd_path"}:
-        return str(ctx["message"])
-    if kind == "extra_forbidden":
-        return _unknown_key(loc)
-    if kind == "literal_error":
-        return f"{shown} is not allowed; use {ctx['expected']}"
-    if kind in {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}:
-        return f"{shown} is out of range; {_range_text(loc) or error['msg'].lower()}"
-    if kind in {"int_parsing", "int_type", "int_from_float"}:
-        return f"{shown} is not an integer; {_range_text(loc) or 'give a whole number'}"
-    if kind in {"float_parsing", "float_type", "finite_number"}:
-        return f"{shown} is not a finite number; {_range_text(loc) or 'give a number'}"
-    if kind in {"bool_parsing", "bool_type"}:
-        return f"{shown} is not a boolean; use true or false"
-    if kind in {"string_type", "path_type"}:
-        return f'{shown} is not text; quote it, e.g. "..."'
-    if kind in {"model_type", "model_attributes_type", "dict_type"}:
-        return f"{shown} is not a table; write it as a [{loc[0]}] section with keys"
-    if kind in {"tuple_type", "list_type", "too_short", "too_long"}:
-        return f"{shown} has the wrong shape; {error['msg'].lower()}"
-    return f"{error['msg']} (got {shown})"
-
-
-def _show(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _unknown_key(loc: tuple[str, ...]) -> str:
-    if len(loc) == 1:
-        valid = list(DffdConfig.model_fields)
-        what, where = "unknown section", "valid sections"
-    else:
-        section_field = DffdConfig.model_fields.get(loc[0])
-        annotation = section_field.annotation if section_field is not None else None
-        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
-            return "unknown key"
-        valid = list(annotation.model_fields)
-        what, where = "unknown key", f"valid keys in [{loc[0]}]"
-    close = difflib.get_close_matches(loc[-1], valid, n=1)
-    hint = f"; did you mean {close[0]!r}?" if close else ""
-    return f"{what}{hint} ({where}: {', '.join(valid)})"
-
-
-def _range_text(loc: tuple[str, ...]) -> str:
-    """'allowed: 1 ≤ fps ≤ 240' from the field's declared bounds, or '' if it has none."""
-    if len(loc) < 2:
-        return ""
-    section_field = DffdConfig.model_fields.get(loc[0])
-    annotation = section_field.annotation if section_field is not None else None
-    if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
-        return ""
-    info = annotation.model_fields.get(loc[1])
-    if info is None:
-        return ""
-    low = high = ""
-    for meta in _bounds_metadata(info.metadata, info.annotation):
-        if isinstance(meta, annotated_types.Ge):
-            low = f"{meta.ge} ≤ "
-        elif isinstance(meta, annotated_types.Gt):
-            low = f"{meta.gt} < "
-        elif isinstance(meta, annotated_types.Le):
-            high = f" ≤ {meta.le}"
-        elif isinstance(meta, annotated_types.Lt):
-            high = f" < {meta.lt}"
-    if not (low or high):
-        return ""
-    return f"allowed: {low}{loc[1]}{high}"
-
-
-def _bounds_metadata(metadata: list[Any], annotation: Any) -> list[Any]:
-    """Bounds declared on the field itself or inside an ``Annotated[...] | None`` annotation."""
-    found = list(metadata)
-    for arg in getattr(annotation, "__args__", ()):
-        found.extend(getattr(arg, "__metadata__", ()))
-    for meta in list(found):
-        found.extend(getattr(meta, "metadata", ()))  # FieldInfo inside Annotated
-    return found
 
 
 def _toml_value(value: object) -> str:

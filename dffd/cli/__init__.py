@@ -1,0 +1,107 @@
+"""The ``dffd`` command line: every subcommand registered here, in one table.
+
+A subcommand is its arguments (in ``dffd.cli.arguments``; ``sim-camera``'s in its own light
+module ``drivers.sim.cli``) and an implementation ``run(args) -> int``, imported only to run it, so ``dffd … --help`` loads neither
+OpenCV, SciPy, numba nor pydantic. Exit codes: :mod:`dffd.exitcodes`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import cast
+
+from dffd import __version__
+from dffd.exitcodes import EXIT_CODES_HELP, EXIT_INTERRUPTED
+
+__all__ = ["SUBCOMMANDS", "Subcommand", "build_parser", "entry_point", "main"]
+
+
+@dataclass(frozen=True, slots=True)
+class Subcommand:
+    """One subcommand: its help line, where its arguments and its implementation live."""
+
+    help: str
+    arguments: str  # "module:function(parser)"
+    implementation: str  # "module:function(args) -> exit code"
+
+
+SUBCOMMANDS: dict[str, Subcommand] = {
+    "run": Subcommand(
+        "run the service (no config: simulated camera, embedded broker)",
+        "dffd.cli.arguments:configure_run",
+        "dffd.daemon.app:run",
+    ),
+    "sim-camera": Subcommand(
+        "serve the simulated VISCA camera on a pseudo-terminal",
+        "drivers.sim.cli:configure_parser",
+        "drivers.sim.cli:run",
+    ),
+    "replay": Subcommand(
+        "run the estimation core on a recording",
+        "dffd.cli.arguments:configure_replay",
+        "dffd.replay:run",
+    ),
+    "devices": Subcommand(
+        "list USB serial bridges and video devices, print a udev rule",
+        "dffd.cli.arguments:configure_devices",
+        "drivers.usb:run",
+    ),
+    "calibrate": Subcommand(
+        "fit the focus table and measure the capture latency",
+        "dffd.cli.arguments:configure_calibrate",
+        "dffd.calibrate:run",
+    ),
+    "check-config": Subcommand(
+        "validate a config file and print the resolved config",
+        "dffd.cli.arguments:configure_check_config",
+        "dffd.config.check:run",
+    ),
+}
+
+
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The top-level parser; only the ``selected`` subcommand's arguments are loaded."""
+    parser = argparse.ArgumentParser(
+        prog="dffd",
+        description="Depth-from-focus daemon for VISCA pan/tilt/focus cameras.",
+        epilog=EXIT_CODES_HELP,
+    )
+    parser.add_argument("--version", action="version", version=f"dffd {__version__}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)"
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, sub in SUBCOMMANDS.items():
+        sub_parser = subparsers.add_parser(name, help=sub.help, description=sub.help)
+        sub_parser.set_defaults(_implementation=sub.implementation)
+        if name == selected:
+            _resolve(sub.arguments)(sub_parser)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` and run the chosen subcommand; return its exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    selected = next((arg for arg in argv if arg in SUBCOMMANDS), None)
+    args = build_parser(selected).parse_args(argv)
+    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return cast(int, _resolve(args._implementation)(args))
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+
+
+def entry_point() -> None:
+    """Console-script entry point."""
+    sys.exit(main())
+
+
+def _resolve(target: str) -> Callable[..., object]:
+    module_name, _, function = target.partition(":")
+    return cast(Callable[..., object], getattr(importlib.import_module(module_name), function))

@@ -1,0 +1,102 @@
+"""``dffd check-config``, and the checks ``dffd run`` makes before it starts: the same list.
+
+Validation (:func:`dffd.config.load_config`) catches every bad value and cross-field rule;
+:func:`problems` adds what only the machine can tell — files the config names that do not exist,
+and, when asked, the serial port and the video device. ``dffd run`` refuses a config with any of
+them with exit code 2; ``dffd check-config`` (with ``--check-files`` for the devices, which are
+often checked on another machine than the lab PC) reports them first, with the same code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from dffd.config.explain import ConfigError
+from dffd.config.loading import load_config
+from dffd.config.models import DffdConfig
+from dffd.exitcodes import EXIT_OK, EXIT_USAGE
+
+__all__ = ["problems", "run"]
+
+# camera.port URL forms that name a local serial device (others are network transports).
+_SERIAL_SCHEME = "serial://"
+# A V4L2 device given by index N is /dev/videoN.
+_VIDEO_DEVICE = "/dev/video{}"
+
+
+def problems(config: DffdConfig, *, devices: bool) -> list[str]:
+    """What stops ``dffd run`` beyond validation, one ``dotted.path: what to do`` line each.
+
+    Files the config names must exist; with ``devices`` also the serial port of a VISCA camera
+    and the V4L2 capture device.
+    """
+    named: list[tuple[str, Path | None]] = [
+        ("lens.file", config.lens.file),
+        ("mqtt.password_file", config.mqtt.password_file),
+        ("mqtt.ca_file", config.mqtt.ca_file),
+        ("mqtt.certfile", config.mqtt.certfile),
+        ("mqtt.keyfile", config.mqtt.keyfile),
+        ("sim.camera_config", config.sim.camera_config),
+        ("sim.scenario", config.sim.scenario_file if config.camera.driver == "sim" else None),
+        ("web.token_file", config.web.token_file),
+    ]
+    found = [
+        f"{dotted}: {file} does not exist; create it or fix the path"
+        for dotted, file in named
+        if file is not None and not file.is_file()
+    ]
+    if devices:
+        found.extend(_missing_devices(config))
+    return found
+
+
+def run(args: argparse.Namespace) -> int:
+    """Validate ``args.file``; print the resolved config (stdout) or the problems (stderr)."""
+    try:
+        config = load_config(args.file)
+    except ConfigError as exc:
+        print(f"dffd check-config: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    found = problems(config, devices=args.check_files)
+    if found:
+        error = ConfigError(found, str(args.file))
+        print(f"dffd check-config: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.json:
+        print(json.dumps(config.model_dump(mode="json"), indent=2))
+    else:
+        print(config.to_toml(), end="")
+    return EXIT_OK
+
+
+def _missing_devices(config: DffdConfig) -> list[str]:
+    found = []
+    port = config.camera.port
+    if config.camera.driver == "visca" and port is not None:
+        path = _serial_path(port)
+        if path is not None and not path.exists():
+            found.append(
+                f"camera.port: {path} does not exist; plug in the adapter or fix the path "
+                "(`dffd devices` lists serial adapters and prints a udev rule)"
+            )
+    device = config.capture.device
+    if config.capture.source == "v4l2" and device is not None:
+        path = Path(_VIDEO_DEVICE.format(device)) if isinstance(device, int) else Path(device)
+        if not path.exists():
+            found.append(
+                f"capture.device: {path} does not exist; plug in the grabber or fix the device "
+                "(`dffd devices` lists video devices)"
+            )
+    return found
+
+
+def _serial_path(port: str) -> Path | None:
+    """The local device of a bare path or ``serial://PATH?…`` port; None for network ports."""
+    if port.startswith(_SERIAL_SCHEME):
+        return Path(port.removeprefix(_SERIAL_SCHEME).partition("?")[0])
+    if "://" in port:
+        return None
+    return Path(port)

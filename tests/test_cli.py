@@ -1,0 +1,69 @@
+"""The ``dffd`` command line: one table of subcommands, one set of exit codes, light --help."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import subprocess
+import sys
+
+import pytest
+
+from dffd import exitcodes
+from dffd.cli import SUBCOMMANDS, build_parser
+from dffd.cli.arguments import REPLAY_ESTIMATORS
+
+# A fresh interpreter running `dffd X --help` (imports only): well under this on a loaded machine.
+HELP_TIMEOUT_S = 30.0
+# Modules whose import takes 0.1-2 s each; none is needed to print help.
+HEAVY = ("cv2", "scipy", "numba", "matplotlib", "numpy", "pydantic", "aiomqtt", "amqtt")
+
+
+@pytest.mark.parametrize("command", [None, *SUBCOMMANDS])
+def test_help_imports_nothing_heavy(command: str | None) -> None:
+    argv = [] if command is None else [command]
+    probe = (
+        "import json, sys\n"
+        "from dffd.cli import main\n"
+        "try:\n"
+        f"    main({[*argv, '--help']!r})\n"
+        "except SystemExit as exc:\n"
+        "    assert exc.code == 0, exc.code\n"
+        f"print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r})))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=HELP_TIMEOUT_S,
+        check=True,
+    )  # fmt: skip
+    loaded = json.loads(out.stdout.strip().splitlines()[-1])
+    assert loaded == [], f"dffd {command} --help imports {loaded}"
+
+
+def test_every_subcommand_has_arguments_and_an_implementation() -> None:
+    for name, sub in SUBCOMMANDS.items():
+        parser = build_parser(name)  # loads the arguments, never the implementation
+        assert parser.prog == "dffd"
+        module, _, function = sub.implementation.partition(":")
+        assert callable(getattr(importlib.import_module(module), function)), name
+
+
+def test_driver_tools_use_the_same_exit_codes() -> None:
+    # drivers never imports dffd, so its two subcommands keep constants of their own.
+    from drivers import usb
+    from drivers.sim import cli as sim_cli
+
+    for module in (sim_cli, usb):
+        for name in ("EXIT_OK", "EXIT_FAILURE", "EXIT_USAGE"):
+            if hasattr(module, name):
+                assert getattr(module, name) == getattr(exitcodes, name), (module, name)
+
+
+def test_light_copies_of_implementation_constants_match() -> None:
+    from dffd.cli import arguments
+    from dffd.core.pipeline import ESTIMATORS
+    from drivers import usb
+
+    assert tuple(REPLAY_ESTIMATORS) == tuple(ESTIMATORS)
+    assert arguments.DEVICES_LINK_NAME == usb.DEFAULT_LINK_NAME
+    assert arguments.DEVICES_GROUP == usb.DEFAULT_GROUP
+    assert arguments.DEVICES_SYSFS == usb.SYSFS_USB
