@@ -1,8 +1,9 @@
 """The ``dffd`` command line: every subcommand registered here, in one table.
 
-A subcommand is its arguments (in ``dffd.cli.arguments``; ``sim-camera``'s in its own light
-module ``drivers.sim.cli``) and an implementation ``run(args) -> int``, imported only to run it, so ``dffd … --help`` loads neither
-OpenCV, SciPy, numba nor pydantic. Exit codes: :mod:`dffd.exitcodes`.
+A subcommand is its arguments (in ``dffd.cli.arguments``; ``sim-camera``'s in its own module
+``drivers.sim.cli``) and an implementation ``run(args) -> int``, imported only to run it, so
+``dffd … --help`` loads neither OpenCV, SciPy, numba nor pydantic. Exit codes:
+:mod:`dffd.exitcodes`.
 """
 
 from __future__ import annotations
