@@ -18,7 +18,7 @@ from drivers.sim.config import SimConfigError, WorldConfig
 from drivers.sim.resources import reference_camera_file, world_file, world_names, world_tables
 from hil.scenario import SCENARIO_NAMES, TargetSpec, TrajectorySpec, load_scenario
 
-WORLDS = ("approach", "figure-eight", "paper-circle", "random", "static")
+WORLDS = ("approach", "figure-eight", "line", "paper-circle", "random", "static", "stop-and-go")
 
 
 def test_packaged_files_exist_and_are_listed() -> None:

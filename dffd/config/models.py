@@ -398,9 +398,9 @@ class SimSection(_Section):
 
     scenario: str = Field(
         default="paper-circle",
-        description="a simulated world shipped with the simulator (static, approach, "
-        "paper-circle, figure-eight, random: drivers/sim/data/worlds/) or the path of a TOML "
-        "file with [target] and [trajectory] tables",
+        description="a world shipped with the simulator (drivers/sim/data/worlds/<name>.toml, "
+        "the worlds of the HIL scenarios of the same names, e.g. paper-circle) or the path of a "
+        "TOML file with [target] and [trajectory] tables",
     )
     start_phase_deg: Annotated[float, Field(ge=-360, le=360)] | None = Field(
         default=180.0,
