@@ -1,0 +1,188 @@
+"""Focus-measure validation on the simulator: fitted vertex against the true offset (issue 11.2).
+
+``python -m hil.bench_focus [--models reference,aberrated] [--depths 2.5,4,5.5] [--repeats 5]``
+
+For a static target at depth z, three-setting brackets (half-width h: 3 px of outer blur, as the
+burst planner) are centred at v + δ for δ across [−h, h]; every frame is rendered, tracked by the
+contour and scored by each focus measure; the three costs give the vertex (fit_burst). Reported per
+optics model and measure: the slope of (v̂ − v_c) against (v − v_c) (least squares over δ and
+repeats) and the vertex noise (std of v̂ over noise repeats at each δ, pooled), in units of h.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+import dffd.core.contour as contour_mod
+from dffd.core.contour import ContourTracker, TrackerConfig, find_target
+from dffd.core.focus import fit_burst, frame_cost
+from dffd.core.lens import Lens
+from drivers.sim.config import load_sim_camera_config, with_overrides
+from drivers.sim.resources import reference_camera_file
+from drivers.sim.source import SimFrameSource, camera_state_for
+
+MEASURES = ("peak_gradient", "edge_variance")
+EXTRA: dict[str, object] = {}
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def sim_renderer(
+    model: str, z: float, shape: str, seed: int
+) -> tuple[Callable[[float, int], np.ndarray], float, float, Lens]:
+    """(render(v0_mm, repeat) -> gray, v_true, h, lens) for a static target on a sim model."""
+    cfg = load_sim_camera_config(reference_camera_file())
+    cfg = with_overrides(
+        cfg,
+        {
+            "optics.model": model,
+            "world.target.shape": shape,
+            "world.trajectory.position_m": (0.03, -0.02, z),
+            "lens.focus_jitter_counts": 0.0,
+            "seed": seed,
+            **EXTRA,
+        },
+    )
+    clock = _Clock()
+    state = camera_state_for(cfg, clock=clock)
+    src = SimFrameSource.from_config(cfg, state)
+    optics = src.optics
+    zoom = cfg.zoom_counts
+    v_true = optics.sharp_v_mm(z, zoom)
+    f = optics.focal_length_mm(zoom)
+    n_f = optics.f_number(zoom)
+    h = 3.0 * optics.pixel_pitch_mm * n_f * 2.0 * v_true / f
+    lens = Lens(
+        name="bench",
+        focal_length_mm=f,
+        pixel_pitch_mm=optics.pixel_pitch_mm,
+        focus_counts=(0, 1),
+        focus_v_mm=(f, f + 5.0),
+        f_number=n_f,
+    )
+    counter = [0]
+
+    def render(v0: float, repeat: int) -> np.ndarray:
+        power = (1.0 / f - 1.0 / v0) * 1000.0
+        state.focus.jump(optics.focus_counts_for_depth(1.0 / power), clock.t)
+        counter[0] += 1
+        frame = src.render_frame(counter[0] + 100000 * repeat)
+        return frame.image
+
+    return render, v_true, h, lens
+
+
+def measure(
+    render: Callable[[float, int], np.ndarray],
+    v_true: float,
+    h: float,
+    lens: Lens,
+    *,
+    deltas: Sequence[float],
+    repeats: int,
+) -> dict[str, dict[str, float]]:
+    """Slope and noise of the vertex for each measure."""
+    tracker = ContourTracker(TrackerConfig())
+    offsets: dict[str, list[tuple[float, float, int]]] = {m: [] for m in MEASURES}
+    for rep in range(repeats):
+        for delta in deltas:
+            v_c = v_true - delta * h  # true offset of the vertex from the bracket centre: +δ h
+            costs: dict[str, list[tuple[float, float]]] = {m: [] for m in MEASURES}
+            for x in (-1.0, 0.0, 1.0):
+                gray = render(v_c + x * h, rep)
+                pts = find_target(gray)
+                assert pts is not None
+                assert tracker.start(gray, pts, 0.0)
+                obs = tracker.update(gray, 0.0, "similarity")
+                for m in MEASURES:
+                    c = frame_cost(obs, m)  # type: ignore[arg-type]
+                    assert c is not None, m
+                    costs[m].append(c)
+            for m in MEASURES:
+                fit = fit_burst(
+                    [v_c - h, v_c, v_c + h],
+                    [c[0] for c in costs[m]],
+                    [c[1] for c in costs[m]],
+                    lens,
+                )
+                offsets[m].append(
+                    (delta, (fit.v_hat_mm - v_c) / h if fit.accepted else math.nan, rep)
+                )
+    out = {}
+    for m in MEASURES:
+        arr = np.array(offsets[m])
+        bad = int(np.sum(~np.isfinite(arr[:, 1])))
+        arr = arr[np.isfinite(arr[:, 1])]
+        slope, icpt = np.polyfit(arr[:, 0], arr[:, 1], 1)
+        noise = []
+        for delta in deltas:
+            sel = arr[arr[:, 0] == delta, 1]
+            if len(sel) > 1:
+                noise.append(np.var(sel, ddof=1))
+        out[m] = {
+            "slope": float(slope),
+            "intercept_h": float(icpt),
+            "noise_h": float(math.sqrt(np.mean(noise))) if noise else math.nan,
+            "max_dev_h": float(np.max(np.abs(arr[:, 1] - arr[:, 0]))),
+            "rejected": bad,
+        }
+    return out
+
+
+def main() -> None:
+    """Print slope, intercept, vertex noise and worst deviation per model, depth and measure."""
+    parser = argparse.ArgumentParser(prog="python -m hil.bench_focus", description=__doc__)
+    parser.add_argument("--models", default="reference,aberrated")
+    parser.add_argument("--depths", default="3,6,9")
+    parser.add_argument("--shape", default="disc")
+    parser.add_argument("--k", type=float, default=None, help="window in edge spreads (tuning)")
+    parser.add_argument(
+        "--override",
+        action="append",
+        default=[],
+        help="simulator KEY=VALUE, e.g. lens.psf=gaussian",
+    )
+    parser.add_argument("--repeats", type=int, default=4)
+    parser.add_argument("--deltas", default="-0.9,-0.6,-0.3,0,0.3,0.6,0.9")
+    args = parser.parse_args()
+    deltas = [float(d) for d in args.deltas.split(",")]
+    if args.k is not None:
+        contour_mod.EDGE_WINDOW_SIGMAS = args.k
+    extra = {}
+    for item in args.override:
+        key, value = item.split("=", 1)
+        extra[key] = json.loads(value) if value[:1] in "[{0123456789-." else value
+    EXTRA.clear()
+    EXTRA.update(extra)
+    results = {}
+    for model in args.models.split(","):
+        for z in (float(x) for x in args.depths.split(",")):
+            t0 = time.perf_counter()
+            render, v_true, h, lens = sim_renderer(model, z, args.shape, 0)
+            r = measure(render, v_true, h, lens, deltas=deltas, repeats=args.repeats)
+            results[f"{model} z={z}"] = r
+            for m, v in r.items():
+                print(
+                    f"{model:9s} z={z:4.1f} {m:14s} slope {v['slope']:.3f} "
+                    f"icpt {v['intercept_h']:+.3f} h  noise {v['noise_h']:.4f} h  "
+                    f"maxdev {v['max_dev_h']:.3f} h  rejected {v['rejected']}",
+                    flush=True,
+                )
+            print(f"  ({time.perf_counter() - t0:.1f} s)", flush=True)
+    print(json.dumps(results))
+
+
+if __name__ == "__main__":
+    main()
