@@ -233,7 +233,7 @@ async def test_estimates_converge_commands_and_sigterm(
                 10: b'{"cmd": "fly", "id": 10}',
                 11: b'{"cmd": "set_known_size", "size_m": -1, "id": 11}',
                 12: b'{"cmd": "acquire", "roi": [600, 400, 100, 100], "id": 12}',
-                13: b'{"cmd": "acquire", "id": 13}',
+                13: b'{"cmd": "acquire", "roi": [0, 0, 0, 10], "id": 13}',
             }
             for cid, payload in bad.items():
                 reply = await sub.command(payload, cid)

@@ -36,7 +36,7 @@ def chrome_options(profile: Path) -> Any:
     for arg in (
         "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-        "--no-first-run", f"--user-data-dir={profile}", "--window-size=1400,1100",
+        "--no-first-run", f"--user-data-dir={profile}", "--window-size=1400,1400",
     ):  # fmt: skip
         options.add_argument(arg)
     return options

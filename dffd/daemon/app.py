@@ -58,7 +58,7 @@ from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
@@ -79,11 +79,17 @@ from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
 from dffd.mqtt.topics import Topics
 from dffd.scheduler import Action, Scheduler, SchedulerConfig, depth_rate_limit
 from dffd.step import CoreStep, StepResult
+from dffd.web.interface import Snapshot
+from dffd.web.listen import WebConfigError
 from dffd.wiring import build_core, scheduler_config
 from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.visca.camera import Camera, profile_for
 from drivers.visca.errors import ViscaError
 from drivers.visca.link import ViscaLink
+
+if TYPE_CHECKING:
+    from dffd.daemon.dashboard import Dashboard
+    from dffd.web.server import WebSettings
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -179,6 +185,7 @@ class EstimatorResult:
 
     step: StepResult
     cpu_s: float  # estimator thread CPU time spent on the frame
+    frame: Frame  # the processed frame (the dashboard draws on the newest one)
 
     @property
     def frame_index(self) -> int:
@@ -267,7 +274,7 @@ class EstimatorThread:
         c0 = time.thread_time()
         step = self.core.step(work.frame, work.tag)
         self.processed += 1
-        return EstimatorResult(step, time.thread_time() - c0)
+        return EstimatorResult(step, time.thread_time() - c0, work.frame)
 
 
 # -- rates ----------------------------------------------------------------------------------------
@@ -342,6 +349,8 @@ class Daemon:
         self._last_frame_mono: float | None = None
         self._ready_sent = False
         self._state = "acquiring"
+        self._message: str | None = None  # what the operator should know (status, dashboard)
+        self._last_estimate_mono: float | None = None  # None: none since start or release
         self._last_depth: dict[str, float | None] = {}
         self._last_truth_z: float | None = None
         self._last_size: float | None = None
@@ -352,6 +361,8 @@ class Daemon:
         self.publisher: Publisher | None = None
         self._sched_config: SchedulerConfig | None = None
         self._zoom: int | None = None
+        self.dashboard: Dashboard | None = None
+        self._web: WebSettings | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def main(self) -> int:
@@ -392,6 +403,20 @@ class Daemon:
             lens = Lens.from_toml(cfg.lens.file)
         except LensError as exc:
             raise DaemonError(f"lens.file: {exc}") from exc
+        # Imported here: aiohttp and prometheus-client stay off the path of `dffd run --help`.
+        from dffd.daemon import dashboard
+
+        try:
+            self._web = dashboard.settings_for(cfg.web)
+        except WebConfigError as exc:
+            raise DaemonError(str(exc)) from exc
+        core = build_core(cfg, lens)
+        self.dashboard = dashboard.Dashboard(
+            self.dashboard_snapshot,
+            self._execute,
+            normal_half_px=float(core.pipeline.config.search_px),
+            counts_range=lens.counts_range,
+        )
         try:
             async with contextlib.AsyncExitStack() as stack:
                 await self._start_broker(stack)
@@ -423,7 +448,7 @@ class Daemon:
                 )
                 loop = asyncio.get_running_loop()
                 estimator = EstimatorThread(
-                    build_core(cfg, lens), lambda r: loop.call_soon_threadsafe(self._on_result, r)
+                    core, lambda r: loop.call_soon_threadsafe(self._on_result, r)
                 )
                 estimator.start()
                 self._parts.estimator = estimator
@@ -440,6 +465,11 @@ class Daemon:
         self._parts.link = link
         async with asyncio.TaskGroup() as group:
             pub_task = group.create_task(publisher.run(), name="mqtt")
+            web_task = None
+            if self._web is not None and self.dashboard is not None:
+                from dffd.daemon.dashboard import serve
+
+                web_task = group.create_task(serve(self._web, self.dashboard), name="web")
             try:
                 async with link:
                     camera = Camera(link, cfg.camera.address, profile_for(cfg.camera.model))
@@ -464,6 +494,8 @@ class Daemon:
                     await asyncio.gather(*tasks, return_exceptions=True)
                     await self._shutdown_camera(camera)
             finally:
+                if web_task is not None:
+                    await _cancel(web_task)
                 await self._shutdown_publisher(publisher, pub_task)
 
     async def _wait_for_stop(self) -> None:
@@ -705,6 +737,10 @@ class Daemon:
             now = time.monotonic()
             out = result.step.output
             self._state = out.state
+            if out.state != "idle":
+                self._message = None
+            if self.dashboard is not None:
+                self.dashboard.on_result(result.frame, result.step, result.cpu_s)
             if out.measurement is not None:
                 if out.measurement.accepted:
                     self.bursts_accepted += 1
@@ -715,6 +751,8 @@ class Daemon:
                 if payload_m is not None:
                     log.append("measurement", payload_m)
                     publisher.publish(payload_m)
+                    if self.dashboard is not None:
+                        self.dashboard.on_measurement(payload_m)
             payload_e = None
             if out.estimate is not None:
                 payload_e = self._payload_or_none(self._estimate_payload, out.estimate)
@@ -724,6 +762,9 @@ class Daemon:
                 self._last_size = payload_e.size_m
                 log.append("estimate", payload_e)
                 publisher.publish(payload_e)
+                self._last_estimate_mono = now
+                if self.dashboard is not None:
+                    self.dashboard.on_estimate(payload_e, self._truth_z(result.frame_index), now)
             feedback = result.step.feedback
             if feedback.plan is not None:
                 self._spacing = max(1, (max(feedback.plan) - min(feedback.plan)) // 2)
@@ -756,7 +797,14 @@ class Daemon:
         estimator = self._parts.estimator
         if sched is None or estimator is None:
             raise CommandRejected("the daemon is still starting; retry in a few seconds")
+        if isinstance(command, models.Acquire) and command.roi is None:
+            await self._core(lambda p: p.acquire_auto())
+            self._set_roi(None)
+            self._state, self._message = "acquiring", None
+            _LOGGER.info("acquire: searching the whole frame for the target (automatic detection)")
+            return {"roi": None}
         if isinstance(command, models.Acquire):
+            assert command.roi is not None
             x, y, w, h = command.roi
             fw, fh = sched.config.frame_size
             if x + w > fw or y + h > fh:
@@ -765,12 +813,22 @@ class Daemon:
                     "give [x, y, w, h] inside the image"
                 )
             await self._core(lambda p: p.acquire_roi(x, y, w, h))
+            self._set_roi((x, y, w, h))
+            self._state, self._message = "acquiring", None
+            _LOGGER.info("acquire: target inside roi [%d, %d, %d, %d]", x, y, w, h)
             return {"roi": [x, y, w, h]}
         if isinstance(command, models.Release):
             await self._core(lambda p: p.release())
             sched.cancel_bursts()
             sched.stop_pan_tilt()
             self._wake.set()
+            self._drop_pending_results()
+            self._set_roi(None)
+            self._state = "idle"
+            self._message = "released by command: no depths until an acquire command"
+            self._last_estimate_mono = None
+            self._last_depth = {}
+            _LOGGER.info("released by command: idle, no depths published until 'acquire'")
             return None
         if isinstance(command, models.SetKnownSize):
             size = command.size_m
@@ -899,6 +957,8 @@ class Daemon:
             t_mono=now,
             state=self._state,  # type: ignore[arg-type]
             camera=self.config.camera.name,
+            last_estimate_age_s=self._estimate_age(now),
+            message=self._message,
             rates=models.Rates(
                 frame_hz=self.frames.rate(now),
                 estimate_hz=self.estimates.rate(now),
@@ -915,6 +975,48 @@ class Daemon:
             ),
             version=__version__,
         )
+
+    def dashboard_snapshot(self) -> Snapshot | None:
+        """The dashboard's view now (None until the publisher exists)."""
+        if self.publisher is None:
+            return None
+        now = time.monotonic()
+        source = self._parts.source
+        return Snapshot(
+            status=self.status_payload(now),
+            last_estimate_age_s=self._estimate_age(now),
+            bursts_accepted=self.bursts_accepted,
+            bursts_rejected=self.bursts_rejected,
+            frame_size=source.frame_size if source is not None else None,
+            message=self._message,
+        )
+
+    async def _execute(self, payload: bytes) -> models.CommandReply:
+        """A dashboard command, through the MQTT command path (same validation and reply)."""
+        if self.publisher is None:
+            return models.CommandReply(
+                id=None, ok=False, error="the daemon is still starting; retry",
+                t=models.wall_time(),
+            )  # fmt: skip
+        return await self.publisher.execute(payload)
+
+    def _estimate_age(self, now: float) -> float | None:
+        last = self._last_estimate_mono
+        return None if last is None else max(0.0, now - last)
+
+    def _truth_z(self, frame_index: int) -> float | None:
+        truth_for = self._parts.truth_for
+        truth = truth_for(frame_index) if truth_for is not None else None
+        return None if truth is None else float(truth.z_m)
+
+    def _set_roi(self, roi: tuple[int, int, int, int] | None) -> None:
+        if self.dashboard is not None:
+            self.dashboard.roi = roi
+
+    def _drop_pending_results(self) -> None:
+        """Forget results of frames processed before a release: nothing stale is published."""
+        while not self._results.empty():
+            self._results.get_nowait()
 
     def depth_limit_hz(self) -> float | None:
         """Theoretical depth-measurement rate of this configuration at the current spacing."""
@@ -983,6 +1085,7 @@ class Daemon:
             bursts_rejected=self.bursts_rejected,
             roles=dict(sched.stats.frames) if sched is not None else {},
             depth_m=self._last_depth,
+            last_estimate_age_s=status.last_estimate_age_s,
             best=self.config.estimators.best,
             truth_z_m=self._last_truth_z,
             size_m=self._last_size,
@@ -992,6 +1095,12 @@ class Daemon:
 
 
 # -- helpers -------------------------------------------------------------------------------------
+async def _cancel(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+
+
 def _force_exit() -> None:
     _LOGGER.error("shutdown did not finish within %.0f s; exiting now", SHUTDOWN_TIMEOUT_S)
     logging.shutdown()

@@ -22,6 +22,9 @@ _LOGGER = logging.getLogger(__name__)
 
 # Screen refreshes per second of the live view: enough for a human, cheap for the loop.
 REFRESH_PER_S = 4.0
+# An estimate older than this is shown as stale, not as the current depth: estimates come at
+# 10–30 Hz while tracking, so a second without one means tracking has stopped.
+STALE_AFTER_S = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,6 +49,7 @@ class ConsoleSnapshot:
     bursts_rejected: int
     roles: dict[str, int] = field(default_factory=dict)
     depth_m: dict[str, float | None] = field(default_factory=dict)
+    last_estimate_age_s: float | None = None  # None: no estimate since start or release
     best: str = "lpv"
     truth_z_m: float | None = None
     size_m: float | None = None
@@ -86,15 +90,23 @@ class Console:
         if self._live is not None:
             self._live.update(render(snap))
             return
-        best = snap.depth_m.get(snap.best)
+        best = _num(snap.depth_m.get(snap.best), 3)
+        if is_stale(snap):
+            best = f"{best} ({_age(snap.last_estimate_age_s)})"
         _LOGGER.info(
             "%s %s: %.1f fps, %.1f est/s, depth %.2f/%s Hz; z[%s]=%s truth=%s; link %s "
             "(timeouts %d), mqtt %s (backlog %d), dropped %d",
             snap.camera, snap.state, snap.frame_hz, snap.estimate_hz, snap.depth_hz,
-            _num(snap.depth_limit_hz, 2), snap.best, _num(best, 3), _num(snap.truth_z_m, 3),
+            _num(snap.depth_limit_hz, 2), snap.best, best, _num(snap.truth_z_m, 3),
             "up" if snap.link_connected else "DOWN", snap.link_timeouts,
             "up" if snap.mqtt_connected else "DOWN", snap.mqtt_backlog, snap.frames_dropped,
         )  # fmt: skip
+
+
+def is_stale(snap: ConsoleSnapshot) -> bool:
+    """True when the depths in ``snap`` are not current (none, old, or not tracking)."""
+    age = snap.last_estimate_age_s
+    return age is None or age > STALE_AFTER_S or snap.state != "tracking"
 
 
 def render(snap: ConsoleSnapshot) -> Group:
@@ -115,14 +127,18 @@ def render(snap: ConsoleSnapshot) -> Group:
         f"{snap.frame_hz:.1f}", f"{snap.estimate_hz:.1f}", f"{snap.depth_hz:.2f}",
         _num(limit, 2), _num(ratio, 2),
     )  # fmt: skip
-    depth = Table(title="depth (m)", expand=False)
+    stale = is_stale(snap)
+    title = "depth (m)"
+    if stale:
+        title += f" — last estimate {_age(snap.last_estimate_age_s)}, not current"
+    depth = Table(title=title, expand=False, style="dim" if stale else "")
     depth.add_column("estimator")
     depth.add_column("z", justify="right")
     depth.add_column("error vs truth", justify="right")
     for name, z in snap.depth_m.items():
         err = None if z is None or snap.truth_z_m is None else z - snap.truth_z_m
         label = f"{name} (best)" if name == snap.best else name
-        depth.add_row(label, _num(z, 3), _num(err, 3))
+        depth.add_row(label, _num(z, 3), _num(err, 3), style="dim strike" if stale else "")
     depth.add_row("truth", _num(snap.truth_z_m, 3), "")
     health = Table(title="health", expand=False)
     for col in ("VISCA link", "timeouts", "errors", "reconnects", "MQTT", "backlog", "dropped"):
@@ -139,6 +155,10 @@ def render(snap: ConsoleSnapshot) -> Group:
         f" frames {roles}; size R̂ = {_num(snap.size_m, 4)} m   (Ctrl-C to stop)"
     )
     return Group(head, rates, depth, health, foot)
+
+
+def _age(age_s: float | None) -> str:
+    return "none since start or release" if age_s is None else f"{age_s:.1f} s ago"
 
 
 def _num(value: float | None, digits: int) -> str:

@@ -208,6 +208,10 @@ class Status(Payload):
     link: LinkHealth | None = None
     mqtt: MqttHealth | None = None
     drops: Drops | None = None
+    last_estimate_age_s: Annotated[float, Field(ge=0)] | None = Field(
+        default=None,
+        description="time since the last published estimate; null: none since start or release",
+    )
     version: str
     message: str | None = Field(default=None, description="human-readable note, e.g. why offline")
 
@@ -224,10 +228,12 @@ class _CommandBase(BaseModel):
 
 
 class Acquire(_CommandBase):
-    """Acquire the target inside ``roi`` [x, y, w, h] (pixels)."""
+    """Acquire the target inside ``roi`` [x, y, w, h] (pixels); without ``roi``, detect it."""
 
     cmd: Literal["acquire"]
-    roi: tuple[NonNegInt, NonNegInt, Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]]
+    roi: (
+        tuple[NonNegInt, NonNegInt, Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]] | None
+    ) = Field(default=None, description="box to search, pixels; omitted or null: whole frame")
 
 
 class Release(_CommandBase):
