@@ -4,17 +4,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import random
 import sys
 from collections.abc import AsyncIterator
+from typing import Any, cast
 
 import pytest
 
 from drivers.sim.device import DeviceConfig
+from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.net_server import SimTcpServer
 from drivers.sim.server import SimCameraServer
 from drivers.visca.camera import Camera
 from drivers.visca.errors import LinkDownError
 from drivers.visca.link import ViscaLink
+from drivers.visca.transport import UdpTransport
 from drivers.visca.url import CameraUrl, parse_camera_url
 from tests.visca_support import FAST, WAIT_S, reinit_event
 
@@ -58,9 +62,13 @@ def test_bad_camera_urls_say_what_is_wrong(url: str, message: str) -> None:
 @contextlib.asynccontextmanager
 async def _served(kind: str) -> AsyncIterator[tuple[object, ViscaLink, Camera]]:
     config = DeviceConfig(focus_speed_counts_s=0x7400 / 0.3)
-    server: SimCameraServer | SimTcpServer = (
-        SimCameraServer(config) if kind == "pty" else SimTcpServer(config)
-    )
+    server: SimCameraServer | SimTcpServer | SimUdpServer
+    if kind == "pty":
+        server = SimCameraServer(config)
+    elif kind == "tcp":
+        server = SimTcpServer(config)
+    else:
+        server = SimUdpServer(config)
     async with server:
         url = server.path if isinstance(server, SimCameraServer) else server.url
         async with ViscaLink(url, timeouts=FAST) as link:
@@ -69,7 +77,7 @@ async def _served(kind: str) -> AsyncIterator[tuple[object, ViscaLink, Camera]]:
             yield server, link, camera
 
 
-@pytest.mark.parametrize("kind", ["pty", "tcp"])
+@pytest.mark.parametrize("kind", ["pty", "tcp", "udp"])
 async def test_camera_api_over_every_transport(kind: str) -> None:
     async with _served(kind) as (_, link, camera):
         assert camera.version_info is not None
@@ -109,21 +117,19 @@ async def test_tcp_port_nobody_listens_on_raises_link_down() -> None:
         await ViscaLink(url, timeouts=FAST).open()
 
 
-def test_visca_ip_is_refused_with_a_clear_message() -> None:
-    with pytest.raises(ValueError, match="not implemented yet"):
-        ViscaLink("visca-ip://127.0.0.1:52381")
-
-
-async def test_sim_camera_cli_serves_tcp_and_prints_the_address_first() -> None:
+@pytest.mark.parametrize(("listen", "scheme"), [("tcp", "tcp"), ("udp", "visca-ip")])
+async def test_sim_camera_cli_serves_the_network_and_prints_the_address_first(
+    listen: str, scheme: str
+) -> None:
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "dffd", "sim-camera", "--listen", "tcp://127.0.0.1:0",
+        sys.executable, "-m", "dffd", "sim-camera", "--listen", f"{listen}://127.0.0.1:0",
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
     )  # fmt: skip
     try:
         assert proc.stdout is not None
         line = await asyncio.wait_for(proc.stdout.readline(), CLI_START_TIMEOUT_S)
         url = line.decode().strip()
-        assert url.startswith("tcp://127.0.0.1:")
+        assert url.startswith(f"{scheme}://127.0.0.1:")
         async with ViscaLink(url, timeouts=FAST) as link:
             camera = Camera(link, 1)
             version = await camera.initialize()
@@ -131,3 +137,86 @@ async def test_sim_camera_cli_serves_tcp_and_prints_the_address_first() -> None:
     finally:
         proc.terminate()
         assert await asyncio.wait_for(proc.wait(), CLI_START_TIMEOUT_S) == 0
+
+
+class LossyRelay(asyncio.DatagramProtocol):
+    """A UDP relay between driver and camera that loses, duplicates and reorders (seeded)."""
+
+    def __init__(self, target: tuple[str, int], seed: int, rate: float) -> None:
+        self.target = target
+        self.rng = random.Random(seed)
+        self.rate = rate
+        self.client: tuple[str, int] | None = None
+        self.udp: asyncio.DatagramTransport | None = None
+        self.counts = {"relayed": 0, "lost": 0, "duplicated": 0, "delayed": 0}
+
+    async def start(self) -> str:
+        loop = asyncio.get_running_loop()
+        await loop.create_datagram_endpoint(lambda: self, local_addr=("127.0.0.1", 0))
+        assert self.udp is not None
+        return f"visca-ip://127.0.0.1:{self.udp.get_extra_info('sockname')[1]}"
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.udp = cast(asyncio.DatagramTransport, transport)
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        peer = (addr[0], addr[1])
+        if peer != self.target:
+            self.client = peer
+        to = self.target if peer != self.target else self.client
+        if to is None or self.udp is None:
+            return
+        self.counts["relayed"] += 1
+        roll = self.rng.random()
+        if roll < self.rate:
+            self.counts["lost"] += 1
+            return
+        copies = 2 if roll < 2 * self.rate else 1
+        if copies == 2:
+            self.counts["duplicated"] += 1
+        for _ in range(copies):
+            if self.rng.random() < self.rate:
+                # Held back up to ~2 camera fields: overtaken by what follows.
+                self.counts["delayed"] += 1
+                delay = self.rng.uniform(0.005, 0.035)
+                asyncio.get_running_loop().call_later(delay, self._send, data, to)
+            else:
+                self._send(data, to)
+
+    def _send(self, data: bytes, to: tuple[str, int]) -> None:
+        if self.udp is not None and not self.udp.is_closing():
+            self.udp.sendto(data, to)
+
+
+async def test_visca_ip_under_loss_duplication_and_reordering_returns_true_results() -> None:
+    config = DeviceConfig(focus_speed_counts_s=0x7400 / 0.3, network_change_at_power_up=False)
+    rng = random.Random(12)
+    async with SimUdpServer(config) as server:
+        relay = LossyRelay(("127.0.0.1", server.port), seed=2024, rate=0.10)
+        url = await relay.start()
+        try:
+            async with ViscaLink(url) as link:
+                camera = Camera(link, 1)
+                await camera.initialize()
+                for _ in range(12):
+                    focus = rng.randrange(0x1000, 0x8400)
+                    await camera.focus_direct(focus)
+                    assert server.state.focus.position(server.state.clock()) == pytest.approx(
+                        focus, abs=1
+                    )
+                    assert await camera.focus_position() == focus
+                    pan, tilt = rng.uniform(-20, 20), rng.uniform(-10, 10)
+                    await camera.pan_tilt_absolute(pan, tilt, 300)
+                    got_pan, got_tilt = await camera.pan_tilt_position()
+                    assert abs(got_pan - pan) < 0.1
+                    assert abs(got_tilt - tilt) < 0.1
+                    assert await camera.focus_is_auto() is False
+                stats = cast(UdpTransport, link._transport).channel.stats
+                # Lost replies were recovered by retransmission and by restoring ACKs.
+                assert stats.retransmits > 0
+                assert stats.duplicates > 0
+                assert link.health().stray_replies == 0
+        finally:
+            assert relay.udp is not None
+            relay.udp.close()
+    assert min(relay.counts["lost"], relay.counts["duplicated"], relay.counts["delayed"]) > 5

@@ -1,7 +1,8 @@
-"""``dffd sim-camera``: serve the simulated VISCA camera on a pseudo-terminal or a TCP port.
+"""``dffd sim-camera``: serve the simulated VISCA camera on a pseudo-terminal, TCP or UDP.
 
 Prints what it serves as the first line of stdout — the device path (the ``--link`` symlink, else
-the pty slave), or ``tcp://HOST:PORT`` for ``--listen tcp://…`` — serves until SIGTERM or
+the pty slave), ``tcp://HOST:PORT`` for ``--listen tcp://…`` (raw VISCA) or
+``visca-ip://HOST:PORT`` for ``--listen udp://…`` (VISCA over IP) — serves until SIGTERM or
 SIGINT, then exits 0.
 """
 
@@ -16,6 +17,7 @@ from urllib.parse import urlsplit
 
 from drivers.sim.device import DeviceConfig
 from drivers.sim.faults import Faults, FaultSpecError
+from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.net_server import SimTcpServer
 from drivers.sim.server import SimCameraServer
 
@@ -32,7 +34,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--listen",
         metavar="URL",
         default="pty",
-        help="pty (default) or tcp://127.0.0.1:PORT (raw VISCA over TCP; port 0: any free one)",
+        help="pty (default), tcp://127.0.0.1:PORT (raw VISCA over TCP) or udp://127.0.0.1:PORT "
+        "(VISCA over IP; prints visca-ip://…); port 0: any free one",
     )
     parser.add_argument(
         "--link",
@@ -89,23 +92,24 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     listen = args.listen.strip()
     tcp: tuple[str, int] | None = None
+    scheme = "pty"
     if listen != "pty":
         parts = urlsplit(listen)
         try:
             port = parts.port
         except ValueError:
             port = None
-        if parts.scheme != "tcp" or not parts.hostname or port is None:
+        if parts.scheme not in ("tcp", "udp") or not parts.hostname or port is None:
             print(
-                f"dffd sim-camera: --listen {listen!r}: use pty or tcp://HOST:PORT (port 0: any "
-                "free one); VISCA over IP (udp://) is not implemented yet",
+                f"dffd sim-camera: --listen {listen!r}: use pty, tcp://HOST:PORT (raw VISCA) or "
+                "udp://HOST:PORT (VISCA over IP); port 0: any free one",
                 file=sys.stderr,
             )
             return EXIT_USAGE
-        tcp = (parts.hostname, port)
+        tcp, scheme = (parts.hostname, port), parts.scheme
     try:
         if tcp is not None:
-            return asyncio.run(_serve_tcp(config, faults, *tcp))
+            return asyncio.run(_serve_net(scheme, config, faults, *tcp))
         return asyncio.run(_serve(config, faults, args.link))
     except OSError as exc:
         print(
@@ -128,12 +132,15 @@ async def _serve(config: DeviceConfig, faults: Faults, link: str | None) -> int:
     return EXIT_OK
 
 
-async def _serve_tcp(config: DeviceConfig, faults: Faults, host: str, port: int) -> int:
+async def _serve_net(
+    scheme: str, config: DeviceConfig, faults: Faults, host: str, port: int
+) -> int:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, stop.set)
-    async with SimTcpServer(config, host=host, port=port, faults=faults) as server:
+    server_cls = SimUdpServer if scheme == "udp" else SimTcpServer
+    async with server_cls(config, host=host, port=port, faults=faults) as server:
         sys.stdout.write(f"{server.url}\n")
         sys.stdout.flush()
         logger.info("sim camera %s on %s, faults: %s", config, server.url, faults.spec)

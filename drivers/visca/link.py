@@ -83,6 +83,7 @@ from drivers.visca.transport import (
     open_serial_port,
     serial_factory,
     tcp_factory,
+    udp_factory,
 )
 from drivers.visca.url import parse_camera_url
 
@@ -845,10 +846,8 @@ def _factory_for(url: str, baudrate: int, port_factory: PortFactory) -> Transpor
         assert parsed.port is not None
         return tcp_factory(parsed.target, parsed.port)
     if parsed.transport == "visca-ip":
-        raise ValueError(
-            f"{url!r}: VISCA over IP (UDP) is not implemented yet; use tcp:// for a camera with "
-            "a raw VISCA TCP port, or the serial port"
-        )
+        assert parsed.port is not None
+        return udp_factory(parsed.target, parsed.port)
     return serial_factory(parsed.target, parsed.baudrate or baudrate, port_factory)
 
 

@@ -25,9 +25,11 @@ import functools
 import logging
 import threading
 from collections.abc import Awaitable, Callable
-from typing import Protocol
+from typing import Any, Protocol, cast
 
 import serial
+
+from drivers.visca.ip import IpChannel
 
 logger = logging.getLogger(__name__)
 
@@ -252,3 +254,114 @@ class TcpTransport:
 def tcp_factory(host: str, port: int) -> TransportFactory:
     """A factory opening :class:`TcpTransport` to ``host:port``."""
     return functools.partial(TcpTransport.open, host, port)
+
+
+class UdpTransport(asyncio.DatagramProtocol):
+    """VISCA over IP: each VISCA packet in a Sony-framed UDP datagram (:mod:`drivers.visca.ip`).
+
+    The sans-IO :class:`~drivers.visca.ip.IpChannel` does the framing, sequencing, retransmission
+    and reply matching; this class gives it a socket and a timer, and hands the VISCA bytes it
+    recovers to ``on_data``. UDP has no connection to lose: a dead camera shows as the session's
+    timeouts, and ICMP errors (port unreachable) are only logged.
+    """
+
+    def __init__(self, on_data: DataCallback, on_lost: LostCallback, channel: IpChannel) -> None:
+        self._on_data = on_data
+        self._on_lost = on_lost
+        self.channel = channel
+        self._udp: asyncio.DatagramTransport | None = None
+        self._timer: asyncio.TimerHandle | None = None
+        self._closed = False
+
+    @classmethod
+    async def open(
+        cls,
+        host: str,
+        port: int,
+        on_data: DataCallback,
+        on_lost: LostCallback,
+        *,
+        channel: IpChannel | None = None,
+    ) -> UdpTransport:
+        """Open a UDP socket towards ``host:port`` and RESET the camera's sequence."""
+        loop = asyncio.get_running_loop()
+        proto = cls(on_data, on_lost, channel or IpChannel())
+        async with asyncio.timeout(TCP_CONNECT_TIMEOUT_S):  # name resolution only
+            await loop.create_datagram_endpoint(lambda: proto, remote_addr=(host, port))
+        proto.channel.connection_made(loop.time())
+        proto._flush()
+        return proto
+
+    # asyncio.DatagramProtocol
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        # 3.11's selector datagram transport does not subclass DatagramTransport.
+        self._udp = cast(asyncio.DatagramTransport, transport)
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        if self._closed:
+            return
+        self.channel.receive(data, asyncio.get_running_loop().time())
+        self._flush()
+
+    def error_received(self, exc: Exception) -> None:
+        logger.debug("VISCA over IP: %s (retransmission continues)", exc)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self._closed:
+            self._closed = True
+            self._on_lost(exc or ConnectionResetError("the UDP socket closed"))
+
+    # Transport
+
+    def write(self, packet: bytes) -> None:
+        """Hand one VISCA packet to the channel (OSError once closed or when its queue is full)."""
+        if self._closed or self._udp is None:
+            raise OSError("VISCA-over-IP socket is closed")
+        self.channel.send(packet, asyncio.get_running_loop().time())
+        self._flush()
+
+    async def close(self) -> None:
+        """Close the socket; no callback runs afterwards."""
+        self._closed = True
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if self._udp is not None:
+            self._udp.close()
+
+    def _flush(self) -> None:
+        udp = self._udp
+        if udp is not None and not self._closed:
+            for datagram in self.channel.datagrams_to_send():
+                udp.sendto(datagram)
+        data = self.channel.data_received()
+        if data and not self._closed:
+            self._on_data(data)
+        self._rearm()
+
+    def _rearm(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        deadline = self.channel.next_deadline()
+        if deadline is None or self._closed:
+            return
+        loop = asyncio.get_running_loop()
+        self._timer = loop.call_at(deadline, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        if self._closed:
+            return
+        self.channel.poll(asyncio.get_running_loop().time())
+        self._flush()
+
+
+def udp_factory(host: str, port: int) -> TransportFactory:
+    """A factory opening :class:`UdpTransport` (VISCA over IP) to ``host:port``."""
+
+    async def open_udp(on_data: DataCallback, on_lost: LostCallback) -> Transport:
+        return await UdpTransport.open(host, port, on_data, on_lost)
+
+    return open_udp
