@@ -64,7 +64,7 @@ VALIDATORS = {
 }
 
 
-def write_config(tmp_path: Path, broker: Mosquitto) -> Path:
+def write_config(tmp_path: Path, broker: Mosquitto, visca_transport: str = "pty") -> Path:
     path = tmp_path / "dffd.toml"
     path.write_text(
         f"""
@@ -78,6 +78,7 @@ burst_every_n_frames = 6
 [sim]
 scenario = "static"
 seed = 1
+visca_transport = "{visca_transport}"
 [mqtt]
 url = "{broker.url}"
 keepalive_s = 5
@@ -338,3 +339,30 @@ async def test_serial_faults_are_survived(tmp_path: Path, mosquitto: Mosquitto) 
         finally:
             daemon.kill()
     assert code == 0, daemon.log()
+
+
+async def test_estimates_converge_with_the_simulated_camera_on_visca_over_ip(
+    tmp_path: Path, mosquitto: Mosquitto
+) -> None:
+    config = write_config(tmp_path, mosquitto, visca_transport="udp")
+    async with subscribe(mosquitto) as sub:
+        daemon = DaemonProcess(tmp_path, config)
+        try:
+            await sub.wait_for(online, STARTUP_TIMEOUT_S)
+            await sub.wait_for(
+                lambda m: len(m["measurement"]) >= 3 and len(m["estimate"]) >= 100,
+                MESSAGE_TIMEOUT_S + STARTUP_TIMEOUT_S,
+            )
+            recent = [e["z_m"] for e in sub.messages["estimate"][-30:] if e["z_m"] is not None]
+            assert len(recent) >= 20
+            errors = sorted(abs(z - TRUE_DEPTH_M) for z in recent)
+            assert errors[len(errors) // 2] < CONVERGED_TOL_M, errors
+            assert any(m["fit"]["accepted"] for m in sub.messages["measurement"])
+            status = [s for s in sub.messages["status"] if s["availability"] == "online"][-1]
+            assert status["link"]["connected"] is True
+            assert sub.invalid == []
+            code, _ = daemon.terminate()
+        finally:
+            daemon.kill()
+    assert code == 0, daemon.log()
+    assert "visca-ip://127.0.0.1:" in daemon.log()

@@ -410,8 +410,10 @@ class SimSection(_Section):
     camera_config: Path | None = Field(
         default=None, description="simulated camera TOML (default: built in)"
     )
-    visca_transport: Literal["pty"] = Field(
-        default="pty", description="pty = the real serial path over a pseudo-terminal (only one)"
+    visca_transport: Literal["pty", "udp", "tcp"] = Field(
+        default="pty",
+        description="how the daemon reaches the simulated camera: pty = the serial path over a "
+        "pseudo-terminal, udp = VISCA over IP on a loopback port, tcp = raw VISCA over TCP",
     )
     publish_truth: bool = True
 

@@ -560,6 +560,18 @@ class Daemon:
         rig = build_sim_camera(
             self._sim_camera_config(), device=DeviceConfig(baud=cfg.camera.baudrate, pace=True)
         )
+        transport = cfg.sim.visca_transport
+        if transport != "pty":
+            from drivers.sim.ip_server import SimUdpServer
+            from drivers.sim.net_server import SimTcpServer
+
+            net_cls = SimUdpServer if transport == "udp" else SimTcpServer
+            net = net_cls(rig.device_config, state=rig.state, faults=self.sim_faults)
+            await stack.enter_async_context(net)
+            self._parts.sim_server = net
+            self._sim_rig = rig
+            _LOGGER.info("simulated camera on %s", net.url)
+            return net.url
         server = SimCameraServer(rig.device_config, state=rig.state, faults=self.sim_faults)
         await stack.enter_async_context(server)
         self._parts.sim_server = server
