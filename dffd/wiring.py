@@ -8,7 +8,9 @@ only in where frames and time come from.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+import tomllib
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from dffd.core.pipeline import PipelineConfig
 from dffd.scheduler import SchedulerConfig, pixel_offset_to_deg
@@ -17,8 +19,26 @@ from dffd.step import CoreStep
 if TYPE_CHECKING:
     from dffd.config import DffdConfig
     from dffd.core.lens import Lens
+    from drivers.frames import FrameSource
+    from drivers.sim.config import SimCameraConfig
 
-__all__ = ["build_core", "pipeline_config", "scheduler_config"]
+__all__ = [
+    "WiringError",
+    "build_core",
+    "capture_source",
+    "pipeline_config",
+    "scheduler_config",
+    "sim_camera_config",
+]
+
+
+# Frames waiting between the capture thread and the loop (drop-oldest beyond): the estimator
+# wants the newest frame; two absorb one slow loop iteration.
+CAPTURE_QUEUE_FRAMES = 2
+
+
+class WiringError(ValueError):
+    """The configuration names something that cannot be built; the message says what to do."""
 
 
 def build_core(settings: DffdConfig, lens: Lens) -> CoreStep:
@@ -91,3 +111,72 @@ def pipeline_config(settings: DffdConfig) -> PipelineConfig:
         rho_min=est.lpv_rho_min_per_s,
         rho_max=est.lpv_rho_max_per_s,
     )
+
+
+def capture_source(settings: DffdConfig) -> FrameSource:
+    """The OpenCV frame source of ``[capture]`` (a v4l2 device; drivers/capture.py)."""
+    from drivers.capture import CaptureSettings, OpenCVFrameSource
+
+    cap = settings.capture
+    assert cap.device is not None  # validated: v4l2 needs a device
+    capture = CaptureSettings(
+        device=cap.device,
+        width=cap.width,
+        height=cap.height,
+        fps=cap.fps,
+        fourcc=cap.fourcc,
+        buffer_size=1,  # one driver buffer: read() returns a fresh frame, not a stale one
+        gray=True,  # the estimator's input
+        queue_frames=CAPTURE_QUEUE_FRAMES,
+        latency_s=cap.latency_frames / cap.fps,
+    )
+    return OpenCVFrameSource(capture)
+
+
+def sim_camera_config(settings: DffdConfig) -> SimCameraConfig:
+    """The simulated camera of ``[sim] camera_config`` looking at ``[sim] scenario``'s world."""
+    from drivers.sim.config import SimConfigError, load_sim_camera_config, with_overrides
+    from drivers.sim.resources import reference_camera_file
+
+    sim = settings.sim
+    path = sim.camera_config or reference_camera_file()
+    target, trajectory = _scenario_world(sim.scenario_file)
+    trajectory = {**trajectory, "seed": sim.seed}
+    if sim.start_phase_deg is not None:
+        trajectory["phase_deg"] = sim.start_phase_deg
+    try:
+        base = load_sim_camera_config(path)
+        overrides: dict[str, Any] = {
+            "seed": sim.seed,
+            "world.target": target,
+            "world.trajectory": trajectory,
+            "capture.fps": settings.capture.fps,
+        }
+        return with_overrides(base, overrides)
+    except SimConfigError as exc:
+        raise WiringError(f"sim.camera_config / sim.scenario: {exc}") from exc
+
+
+def _scenario_world(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The ``[target]`` and ``[trajectory]`` tables of a world TOML (drivers/sim/data/worlds/).
+
+    The tables are validated by the
+    simulator's own config types (``drivers.sim.config.WorldConfig``) when applied.
+    """
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise WiringError(
+            f"sim.scenario: cannot read {path}: {exc.strerror}; give a scenario name "
+            "(static, approach, paper-circle, figure-eight, random) or a TOML file path"
+        ) from exc
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise WiringError(f"sim.scenario: {path} is not valid TOML: {exc}") from exc
+    target = data.get("target", {})
+    trajectory = data.get("trajectory")
+    if not isinstance(trajectory, dict) or not isinstance(target, dict):
+        raise WiringError(
+            f"sim.scenario: {path} needs a [trajectory] table (and optionally [target]) "
+            "with the keys of drivers/sim/config.py TrajectoryConfig/TargetConfig"
+        )
+    return target, trajectory

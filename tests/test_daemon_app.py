@@ -11,8 +11,9 @@ from rich.console import Console as RichConsole
 
 from dffd.core.pipeline import PipelineOutput
 from dffd.core.types import FrameTag
-from dffd.daemon.app import EstimatorResult, EstimatorThread, RateMeter
 from dffd.daemon.console import ConsoleSnapshot, render
+from dffd.daemon.estimator import EstimatorResult, EstimatorThread
+from dffd.daemon.status import RateMeter
 from dffd.step import CoreStep
 from drivers.frames import Frame
 
@@ -142,9 +143,9 @@ def test_sim_world_comes_from_the_scenario_file(tmp_path: Any) -> None:
     from pathlib import Path
 
     from dffd.config import load_config
-    from dffd.daemon.app import Daemon
+    from dffd.wiring import sim_camera_config
 
-    sim = Daemon(load_config(None))._sim_camera_config()
+    sim = sim_camera_config(load_config(None))
     traj = sim.world.trajectory
     assert (traj.kind, traj.center_m, traj.radius_m, traj.speed_mps) == (
         "circle", (0.0, 0.0, 6.0), 4.0, 0.25,
@@ -159,18 +160,17 @@ def test_sim_world_comes_from_the_scenario_file(tmp_path: Any) -> None:
     )
     cfg = load_config(None).model_copy(deep=True)
     cfg.sim.scenario = str(scenario)
-    sim = Daemon(cfg)._sim_camera_config()
+    sim = sim_camera_config(cfg)
     assert sim.world.target.shape == "polygon"
     assert sim.world.target.rotation_dps == 20.0
     assert sim.world.trajectory.position_m == (0.0, 0.0, 3.0)
 
 
 def test_a_core_output_that_does_not_fit_the_schema_is_skipped_not_fatal() -> None:
-    from dffd.config import load_config
-    from dffd.daemon.app import Daemon
+    from dffd.daemon.payloads import Payloads
     from dffd.mqtt import models
 
-    daemon = Daemon(load_config(None))
+    payloads = Payloads("lpv")
 
     def cut_short(_: object) -> models.Measurement:  # a burst cut by a link fault: 2 frames
         return models.Measurement(
@@ -178,29 +178,26 @@ def test_a_core_output_that_does_not_fit_the_schema_is_skipped_not_fatal() -> No
             fit=models.Fit(accepted=False, reason="too few samples"),
         )  # fmt: skip
 
-    assert daemon._payload_or_none(cut_short, None) is None
-    assert daemon._payload_or_none(cut_short, None) is None
-    assert daemon.payloads_skipped == 2
+    assert payloads.or_none(cut_short, None) is None
+    assert payloads.or_none(cut_short, None) is None
+    assert payloads.skipped == 2
 
 
 async def test_a_core_command_the_busy_estimator_cannot_apply_is_rejected_with_advice(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from dffd.config import load_config
-    from dffd.daemon import app
+    from dffd.daemon import commands
     from dffd.mqtt.publisher import CommandRejected
 
-    monkeypatch.setattr(app, "CORE_COMMAND_TIMEOUT_S", 0.05)  # shrunk, not slept on
+    monkeypatch.setattr(commands, "CORE_COMMAND_TIMEOUT_S", 0.05)  # shrunk, not slept on
     pipeline = _BlockingPipeline()
     est = EstimatorThread(CoreStep(pipeline), lambda _r: None)  # type: ignore[arg-type]
     est.start()
     try:
         est.submit(_frame(0), FrameTag("track", 5000, 0.0, 0.0))
         assert pipeline.entered.wait(RESULT_TIMEOUT_S)  # the core is busy on frame 0
-        daemon = app.Daemon(load_config(None))
-        daemon._parts.estimator = est
         with pytest.raises(CommandRejected, match=r"did not apply the command.*retry"):
-            await daemon._core(lambda p: p.release())
+            await commands.apply_to_core(est, lambda p: p.release())
     finally:
         pipeline.release.set()
         assert est.stop()

@@ -15,7 +15,7 @@ from dffd.cli import main as dffd_main
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.core.types import FrameTag
-from dffd.daemon.app import EstimatorResult, EstimatorThread
+from dffd.daemon.estimator import EstimatorResult, EstimatorThread
 from dffd.recording import RecordingWriter
 from dffd.replay import estimate_line
 from dffd.step import StepResult

@@ -14,6 +14,13 @@ the pure :class:`~dffd.scheduler.Scheduler` and the estimation core. Layout at r
   queue (drop-oldest, counted). Commands that change the core (acquire, release, known size)
   are applied by that thread between frames, so the core is never touched concurrently.
 
+This module is the shell; each part is a module of its own: :mod:`~dffd.daemon.estimator` (the
+thread and its queue), :mod:`~dffd.daemon.actuators` (the focus and pan/tilt workers),
+:mod:`~dffd.daemon.commands`, :mod:`~dffd.daemon.status` (rates, the status payload, the
+console row), :mod:`~dffd.daemon.payloads` (core outputs → MQTT models) and
+:mod:`~dffd.daemon.dashboard`. The objects are built from the configuration by
+:mod:`dffd.wiring`, as the bench and ``dffd replay`` build them.
+
 Without ``--config`` (or with ``camera.driver = "sim"``) the camera is the simulator: its VISCA
 device on a real pty (:class:`~drivers.sim.server.SimCameraServer`), its renderer as the frame
 source, ground truth on ``…/sim/truth``; ``mqtt.url = "embedded"`` starts the embedded amqtt
@@ -46,42 +53,38 @@ import argparse
 import asyncio
 import contextlib
 import logging
-import math
 import os
 import signal
 import sys
-import threading
 import time
-import tomllib
-from collections import deque
 from collections.abc import Awaitable, Callable
-from concurrent.futures import Future
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ValidationError
-
-from dffd import __version__
 from dffd.config import ConfigError, DffdConfig, load_config, problems
 from dffd.core.lens import Lens, LensError
-from dffd.core.pipeline import Estimate as CoreEstimate
-from dffd.core.pipeline import Measurement as CoreMeasurement
-from dffd.core.pipeline import Pipeline
-from dffd.core.types import FrameTag
 from dffd.daemon.actuators import Actuators
+from dffd.daemon.commands import Commands
 from dffd.daemon.console import Console, ConsoleSnapshot
+from dffd.daemon.estimator import EstimatorResult, EstimatorThread
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
 from dffd.daemon.notify import Notifier
+from dffd.daemon.payloads import Payloads, truth_payload
+from dffd.daemon.status import StatusBoard, link_health
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
 from dffd.mqtt.topics import Topics
 from dffd.scheduler import Action, Scheduler, SchedulerConfig, depth_rate_limit
-from dffd.step import CoreStep, StepResult
 from dffd.web.interface import Snapshot
 from dffd.web.listen import WebConfigError
-from dffd.wiring import build_core, scheduler_config
+from dffd.wiring import (
+    WiringError,
+    build_core,
+    capture_source,
+    scheduler_config,
+    sim_camera_config,
+)
 from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.visca.camera import Camera, profile_for
 from drivers.visca.errors import ViscaError
@@ -105,12 +108,8 @@ CAMERA_INIT_TIMEOUT_S = 30.0
 # A frame must arrive within this time (30 fps → 33 ms; a USB grabber may stall ~1 s on
 # re-negotiation) before capture is reported stalled (it then keeps waiting).
 FRAME_TIMEOUT_S = 2.0
-# Frames flow if the last one is younger than this (watchdog pings and READY depend on it).
-FRAMES_FLOWING_S = 1.0
 # Status (retained), console and watchdog period. Also the rate window's granularity.
 STATUS_PERIOD_S = 1.0
-# Window over which achieved rates are computed.
-RATE_WINDOW_S = 5.0
 # The scheduler task sleeps at most this long without an event (guards against a lost wake-up).
 # Shortest wait when the scheduler asks to be woken in the past but has nothing to do: far
 # below its timing resolution (one video field, 16.7 ms), so it costs no accuracy, yet it keeps
@@ -118,22 +117,7 @@ RATE_WINDOW_S = 5.0
 SCHEDULER_MIN_WAIT_S = 0.001
 SCHEDULER_IDLE_S = 0.5
 # Bounded queues (DESIGN §8: no unbounded queue anywhere).
-FRAME_QUEUE_MAX = 4  # estimator input: a few frames of slack at 30 fps, then drop the oldest
 RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
-COMMAND_QUEUE_MAX = 16  # core commands waiting for the estimator thread
-# Estimator thread: waits for frames in slices so it notices a stop request.
-ESTIMATOR_POLL_S = 0.2
-ESTIMATOR_JOIN_TIMEOUT_S = 2.0
-# Core commands wait at most this long for the estimator thread to apply them.
-CORE_COMMAND_TIMEOUT_S = 2.0
-# Nominal bracket spacing (counts) for the rate limit until the core plans a burst.
-DEFAULT_SPACING_COUNTS = 300
-# Frames waiting between the capture thread and the loop (drop-oldest beyond): the estimator
-# wants the newest frame; two absorb one slow loop iteration.
-CAPTURE_QUEUE_FRAMES = 2
-
-
-_M = TypeVar("_M", bound=BaseModel)
 
 
 class DaemonError(RuntimeError):
@@ -170,135 +154,6 @@ def run(args: argparse.Namespace) -> int:
         return asyncio.run(daemon.main())
     except KeyboardInterrupt:
         return EXIT_OK
-
-
-# -- the estimator thread ------------------------------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class _Work:
-    frame: Frame
-    tag: FrameTag
-
-
-@dataclass(frozen=True, slots=True)
-class EstimatorResult:
-    """One processed frame, handed back to the event loop."""
-
-    step: StepResult
-    cpu_s: float  # estimator thread CPU time spent on the frame
-    frame: Frame  # the processed frame (the dashboard draws on the newest one)
-
-    @property
-    def frame_index(self) -> int:
-        """Index of the processed frame."""
-        return self.step.frame_index
-
-
-CoreCommand = Callable[[Pipeline], dict[str, Any] | None]
-
-
-class EstimatorThread:
-    """The core in one dedicated thread behind one bounded drop-oldest queue."""
-
-    def __init__(
-        self,
-        core: CoreStep,
-        deliver: Callable[[EstimatorResult], object],
-        queue_max: int = FRAME_QUEUE_MAX,
-    ) -> None:
-        self.core = core
-        self._deliver = deliver
-        self._frames: deque[_Work] = deque(maxlen=queue_max)
-        self._commands: deque[tuple[CoreCommand, Future[dict[str, Any] | None]]] = deque(
-            maxlen=COMMAND_QUEUE_MAX
-        )
-        self._cond = threading.Condition()
-        self._stop = False
-        self.dropped = 0
-        self.processed = 0
-        self._thread = threading.Thread(target=self._run, name="dffd-estimator", daemon=True)
-
-    def start(self) -> None:
-        """Start the thread."""
-        self._thread.start()
-
-    def submit(self, frame: Frame, tag: FrameTag) -> None:
-        """Queue a frame (never blocks; drops the oldest queued frame when full)."""
-        with self._cond:
-            if len(self._frames) == self._frames.maxlen:
-                self.dropped += 1
-            self._frames.append(_Work(frame, tag))
-            self._cond.notify()
-
-    def call(self, command: CoreCommand) -> Future[dict[str, Any] | None]:
-        """Run ``command(pipeline)`` in the estimator thread before the next frame."""
-        future: Future[dict[str, Any] | None] = Future()
-        with self._cond:
-            if len(self._commands) == self._commands.maxlen:
-                future.set_exception(CommandRejected("too many pending commands; retry"))
-                return future
-            self._commands.append((command, future))
-            self._cond.notify()
-        return future
-
-    def stop(self, timeout_s: float = ESTIMATOR_JOIN_TIMEOUT_S) -> bool:
-        """Ask the thread to finish and join it; True if it did in time."""
-        with self._cond:
-            self._stop = True
-            self._cond.notify()
-        if self._thread.is_alive():
-            self._thread.join(timeout_s)
-        return not self._thread.is_alive()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not (self._stop or self._frames or self._commands):
-                    self._cond.wait(ESTIMATOR_POLL_S)
-                if self._stop:
-                    return
-                commands = list(self._commands)
-                self._commands.clear()
-                work = self._frames.popleft() if self._frames else None
-            for command, future in commands:
-                try:
-                    future.set_result(command(self.core.pipeline))
-                except Exception as exc:  # noqa: BLE001 - a bad command is answered, never fatal
-                    future.set_exception(exc)
-            if work is not None:
-                try:
-                    self._deliver(self._process(work))
-                except Exception:  # the core must not kill the service on one bad frame
-                    _LOGGER.exception("estimator failed on frame %d", work.frame.index)
-
-    def _process(self, work: _Work) -> EstimatorResult:
-        c0 = time.thread_time()
-        step = self.core.step(work.frame, work.tag)
-        self.processed += 1
-        return EstimatorResult(step, time.thread_time() - c0, work.frame)
-
-
-# -- rates ----------------------------------------------------------------------------------------
-class RateMeter:
-    """Events per second over a sliding window (bounded memory)."""
-
-    def __init__(self, window_s: float = RATE_WINDOW_S, max_events: int = 4096) -> None:
-        self.window_s = window_s
-        self._times: deque[float] = deque(maxlen=max_events)
-        self.count = 0
-
-    def add(self, t: float) -> None:
-        """Record one event at ``t``."""
-        self._times.append(t)
-        self.count += 1
-
-    def rate(self, now: float) -> float:
-        """Events per second over the window ending at ``now``."""
-        while self._times and now - self._times[0] > self.window_s:
-            self._times.popleft()
-        if len(self._times) < 2:
-            return 0.0
-        span = max(now - self._times[0], self._times[-1] - self._times[0])
-        return (len(self._times) - 1) / span if span > 0 else 0.0
 
 
 # -- the daemon -----------------------------------------------------------------------------------
@@ -338,24 +193,10 @@ class Daemon:
         self._wake = asyncio.Event()
         self._results: asyncio.Queue[EstimatorResult] = asyncio.Queue(RESULT_QUEUE_MAX)
         self.results_dropped = 0
-        self.payloads_skipped = 0  # core outputs that did not fit the MQTT schema
-        self.frames = RateMeter()
-        self.estimates = RateMeter()
-        self.measurements = RateMeter()
-        self.bursts_accepted = 0
-        self.bursts_rejected = 0
-        self._estimate_seq = 0
-        self._measurement_seq = 0
-        self._last_frame_mono: float | None = None
+        self.payloads = Payloads(config.estimators.best)
+        self.board = StatusBoard(config.camera.name, config.estimators.best, time.monotonic())
         self._ready_sent = False
-        self._state = "acquiring"
-        self._message: str | None = None  # what the operator should know (status, dashboard)
-        self._last_estimate_mono: float | None = None  # None: none since start or release
-        self._last_depth: dict[str, float | None] = {}
-        self._last_truth_z: float | None = None
-        self._last_size: float | None = None
-        self._spacing = DEFAULT_SPACING_COUNTS
-        self._t_start = time.monotonic()
+        self._commands: Commands | None = None
         self.camera: Camera | None = None
         self.scheduler: Scheduler | None = None
         self.publisher: Publisher | None = None
@@ -452,6 +293,16 @@ class Daemon:
                 )
                 estimator.start()
                 self._parts.estimator = estimator
+                assert self.scheduler is not None
+                self._commands = Commands(
+                    cfg,
+                    self.scheduler,
+                    estimator,
+                    camera=lambda: self.camera,
+                    wake=self._wake.set,
+                    acquired=self._acquired,
+                    released=self._released,
+                )
                 stack.callback(estimator.stop)
                 await self._serve(port, source, lens)
         except TimeoutError as exc:
@@ -557,9 +408,11 @@ class Daemon:
         from drivers.sim.rig import build_sim_camera
         from drivers.sim.server import SimCameraServer
 
-        rig = build_sim_camera(
-            self._sim_camera_config(), device=DeviceConfig(baud=cfg.camera.baudrate, pace=True)
-        )
+        try:
+            sim_config = sim_camera_config(cfg)
+        except WiringError as exc:
+            raise DaemonError(str(exc)) from exc
+        rig = build_sim_camera(sim_config, device=DeviceConfig(baud=cfg.camera.baudrate, pace=True))
         transport = cfg.sim.visca_transport
         if transport != "pty":
             from drivers.sim.ip_server import SimUdpServer
@@ -579,29 +432,6 @@ class Daemon:
         _LOGGER.info("simulated camera on %s", server.path)
         return str(server.path)
 
-    def _sim_camera_config(self) -> Any:
-        """The simulated camera of ``sim.camera_config`` looking at ``sim.scenario``'s world."""
-        from drivers.sim.config import SimConfigError, load_sim_camera_config, with_overrides
-        from drivers.sim.resources import reference_camera_file
-
-        cfg = self.config
-        path = cfg.sim.camera_config or reference_camera_file()
-        target, trajectory = _scenario_world(cfg.sim.scenario_file)
-        trajectory = {**trajectory, "seed": cfg.sim.seed}
-        if cfg.sim.start_phase_deg is not None:
-            trajectory["phase_deg"] = cfg.sim.start_phase_deg
-        try:
-            base = load_sim_camera_config(path)
-            overrides: dict[str, Any] = {
-                "seed": cfg.sim.seed,
-                "world.target": target,
-                "world.trajectory": trajectory,
-                "capture.fps": cfg.capture.fps,
-            }
-            return with_overrides(base, overrides)
-        except SimConfigError as exc:
-            raise DaemonError(f"sim.camera_config / sim.scenario: {exc}") from exc
-
     async def _start_source(
         self, stack: contextlib.AsyncExitStack, lens: Lens
     ) -> tuple[FrameSource, float | None, float]:
@@ -617,7 +447,7 @@ class Daemon:
             self._parts.truth_for = rig.source.truth_for
             stack.push_async_callback(self._source_close)
             return rig.source, rig.config.capture.exposure_s, rig.device_config.focus_speed_counts_s
-        source = _open_capture(cfg)
+        source = capture_source(cfg)
         self._parts.source = source
         stack.push_async_callback(self._source_close)
         profile = profile_for(cfg.camera.model)
@@ -681,8 +511,7 @@ class Daemon:
                 continue
             stalled = False
             now = time.monotonic()
-            self._last_frame_mono = now
-            self.frames.add(now)
+            self.board.on_frame(now)
             tag = sched.on_frame(frame.index, frame.t)
             estimator.submit(frame, tag)
             self._wake.set()
@@ -695,17 +524,9 @@ class Daemon:
         truth = truth_for(frame.index)
         if truth is None:
             return
-        self._last_truth_z = float(truth.z_m)
+        self.board.last_truth_z = float(truth.z_m)
         assert self.publisher is not None
-        self.publisher.publish(
-            models.Truth(
-                t=models.wall_time(),
-                t_mono=frame.t,
-                z_m=float(truth.z_m),
-                position_m=_vec(truth.position_world_m) or (0.0, 0.0, 0.0),
-                size_m=float(truth.size_m) if truth.size_m > 0 else None,
-            )
-        )
+        self.publisher.publish(truth_payload(frame.t, truth))
 
     async def _scheduler_loop(self, dispatch: Callable[[Action], object]) -> None:
         sched = self.scheduler
@@ -748,18 +569,14 @@ class Daemon:
             result = await self._results.get()
             now = time.monotonic()
             out = result.step.output
-            self._state = out.state
+            self.board.state = out.state
             if out.state != "idle":
-                self._message = None
+                self.board.message = None
             if self.dashboard is not None:
                 self.dashboard.on_result(result.frame, result.step, result.cpu_s)
             if out.measurement is not None:
-                if out.measurement.accepted:
-                    self.bursts_accepted += 1
-                else:
-                    self.bursts_rejected += 1
-                self.measurements.add(now)
-                payload_m = self._payload_or_none(self._measurement_payload, out.measurement)
+                self.board.on_measurement(now, out.measurement)
+                payload_m = self.payloads.measurement(out.measurement)
                 if payload_m is not None:
                     log.append("measurement", payload_m)
                     publisher.publish(payload_m)
@@ -767,19 +584,16 @@ class Daemon:
                         self.dashboard.on_measurement(payload_m)
             payload_e = None
             if out.estimate is not None:
-                payload_e = self._payload_or_none(self._estimate_payload, out.estimate)
+                payload_e = self.payloads.estimate(out.estimate)
             if payload_e is not None:
-                self.estimates.add(now)
-                self._last_depth = dict(payload_e.depth_m.model_dump())
-                self._last_size = payload_e.size_m
+                self.board.on_estimate(now, payload_e)
                 log.append("estimate", payload_e)
                 publisher.publish(payload_e)
-                self._last_estimate_mono = now
                 if self.dashboard is not None:
                     self.dashboard.on_estimate(payload_e, self._truth_z(result.frame_index), now)
             feedback = result.step.feedback
             if feedback.plan is not None:
-                self._spacing = max(1, (max(feedback.plan) - min(feedback.plan)) // 2)
+                self.board.on_plan(feedback.plan)
             feedback.apply(sched)
             self._wake.set()
 
@@ -788,7 +602,7 @@ class Daemon:
         assert publisher is not None
         while True:
             now = time.monotonic()
-            flowing = self._frames_flowing(now)
+            flowing = self.board.frames_flowing(now)
             if flowing and not self._ready_sent:
                 self.notifier.ready("camera initialised, frames flowing")
                 self._ready_sent = True
@@ -797,7 +611,7 @@ class Daemon:
                 self.notifier.watchdog()
             # A status that cannot be built must not end the status task (and with it the
             # watchdog pings): skip that period, counted like any other unpublishable payload.
-            status = self._payload_or_none(self.status_payload, now)
+            status = self.payloads.or_none(self.status_payload, now)
             if status is not None:
                 publisher.publish(status)
                 self.console.update(self._snapshot(now, status))
@@ -805,187 +619,39 @@ class Daemon:
 
     # -- commands ------------------------------------------------------------------------------
     async def _on_command(self, command: models.Command) -> dict[str, Any] | None:
-        sched = self.scheduler
-        estimator = self._parts.estimator
-        if sched is None or estimator is None:
+        commands = self._commands
+        if commands is None:
             raise CommandRejected("the daemon is still starting; retry in a few seconds")
-        if isinstance(command, models.Acquire) and command.roi is None:
-            await self._core(lambda p: p.acquire_auto())
-            self._set_roi(None)
-            self._state, self._message = "acquiring", None
-            _LOGGER.info("acquire: searching the whole frame for the target (automatic detection)")
-            return {"roi": None}
-        if isinstance(command, models.Acquire):
-            assert command.roi is not None
-            x, y, w, h = command.roi
-            fw, fh = sched.config.frame_size
-            if x + w > fw or y + h > fh:
-                raise CommandRejected(
-                    f"roi {list(command.roi)} extends beyond the {fw}x{fh} frame; "
-                    "give [x, y, w, h] inside the image"
-                )
-            await self._core(lambda p: p.acquire_roi(x, y, w, h))
-            self._set_roi((x, y, w, h))
-            self._state, self._message = "acquiring", None
-            _LOGGER.info("acquire: target inside roi [%d, %d, %d, %d]", x, y, w, h)
-            return {"roi": [x, y, w, h]}
-        if isinstance(command, models.Release):
-            await self._core(lambda p: p.release())
-            sched.cancel_bursts()
-            sched.stop_pan_tilt()
-            self._wake.set()
-            self._drop_pending_results()
-            self._set_roi(None)
-            self._state = "idle"
-            self._message = "released by command: no depths until an acquire command"
-            self._last_estimate_mono = None
-            self._last_depth = {}
-            _LOGGER.info("released by command: idle, no depths published until 'acquire'")
-            return None
-        if isinstance(command, models.SetKnownSize):
-            size = command.size_m
-            await self._core(lambda p: p.set_known_size(size))
-            return {"size_m": size}
-        if isinstance(command, models.Home):
-            camera = self.camera
-            if camera is None:
-                raise CommandRejected("camera not initialised yet; retry")
-            sched.stop_pan_tilt()
-            self._wake.set()
-            try:
-                await camera.home()
-            except ViscaError as exc:
-                raise CommandRejected(f"home failed: {exc}") from exc
-            sched.on_pan_tilt_failed(time.monotonic())  # re-anchor the model by inquiry
-            return None
-        if isinstance(command, models.SetBurstPolicy):
-            cfg = sched.config
-            every = command.every_n_frames or cfg.burst_every_frames
-            sigma = None
-            if command.policy == "sigma":
-                sigma = command.sigma_threshold_m or self.config.scheduler.sigma_threshold_m
-            sched.set_policy(every, sigma)
-            self._wake.set()
-            return {"policy": command.policy, "every_n_frames": every, "sigma_threshold_m": sigma}
-        raise CommandRejected(f"unsupported command {command!r}")
+        return await commands.execute(command)
 
-    async def _core(self, command: Callable[[Pipeline], object]) -> None:
-        estimator = self._parts.estimator
-        assert estimator is not None
+    def _acquired(self, roi: tuple[int, int, int, int] | None) -> None:
+        self._set_roi(roi)
+        self.board.on_acquire()
 
-        def wrapped(pipeline: Pipeline) -> dict[str, Any] | None:
-            command(pipeline)
-            return None
-
-        future = estimator.call(wrapped)
-        try:
-            async with asyncio.timeout(CORE_COMMAND_TIMEOUT_S):
-                await asyncio.wrap_future(future)
-        except ValueError as exc:
-            raise CommandRejected(str(exc)) from exc
-        except TimeoutError as exc:
-            raise CommandRejected(
-                f"the estimator did not apply the command within {CORE_COMMAND_TIMEOUT_S:.0f} s "
-                "(it is behind on frames); retry"
-            ) from exc
+    def _released(self) -> None:
+        self._drop_pending_results()
+        self._set_roi(None)
+        self.board.on_release()
 
     # -- payloads --------------------------------------------------------------------------------
-    def _estimate_payload(self, est: CoreEstimate) -> models.Estimate:
-        self._estimate_seq += 1
-        d = est.depth_m
-        depth = models.DepthByEstimator(
-            measured=_fin(d.get("measured")),
-            cf1=_fin(d.get("cf1")),
-            cf2=_fin(d.get("cf2")),
-            lpv=_fin(d.get("lpv")),
-            kf=_fin(d.get("kf")),
-        )
-        best = est.best if est.best in ("lpv", "kf", "cf2", "cf1") else self.config.estimators.best
-        return models.Estimate(
-            seq=self._estimate_seq,
-            t=models.wall_time(),
-            t_mono=est.t,
-            state=est.state,
-            depth_m=depth,
-            best=best,
-            z_m=_fin(est.z_m),
-            sigma_m=_nonneg(est.sigma_m),
-            beta_m_s=_fin(est.beta_m_s),
-            size_m=_nonneg(est.size_m),
-            r_px=_nonneg(est.r_px),
-            rho_per_s=_fin(est.rho),
-            position_m=_vec(est.position_world_m),
-            velocity_m_s=_vec(est.velocity_world_m_s),
-            pan_deg=_fin(est.pan_deg) or 0.0,
-            tilt_deg=_fin(est.tilt_deg) or 0.0,
-            focus_counts=est.focus_counts if est.focus_counts and est.focus_counts >= 0 else None,
-        )
-
-    def _payload_or_none(self, build: Callable[[Any], _M], item: Any) -> _M | None:
-        """A payload, or None (logged, counted) when the core's output does not fit the schema.
-
-        One odd result must never stop the service: e.g. the core reports a burst cut short by
-        a link fault with fewer than the three frames the ``…/measurement`` schema requires.
-        """
-        try:
-            return build(item)
-        except ValidationError as exc:
-            self.payloads_skipped += 1
-            level = logging.DEBUG if self.payloads_skipped > 1 else logging.WARNING
-            _LOGGER.log(level, "not published (%d so far): %s", self.payloads_skipped, exc)
-            return None
-
-    def _measurement_payload(self, m: CoreMeasurement) -> models.Measurement:
-        self._measurement_seq += 1
-        costs = [max(0.0, _fin(c) or 0.0) for c in m.costs]
-        return models.Measurement(
-            seq=self._measurement_seq,
-            burst=max(0, m.burst_id),
-            t=models.wall_time(),
-            t_mono=m.t,
-            focus_counts=[max(0, int(c)) for c in m.focus_counts],
-            v_mm=[_fin(v) or 0.0 for v in m.v_mm],
-            costs=costs,
-            fit=models.Fit(
-                alpha=_fin(m.alpha),
-                v_mm=_fin(m.v_hat_mm),
-                residual=_nonneg(m.residual),
-                accepted=m.accepted,
-                reason=m.reason or None,
-            ),
-            z_m=_fin(m.z_m),
-            sigma_m=_nonneg(m.sigma_m),
-        )
-
     def status_payload(self, now: float) -> models.Status:
         """The retained ``…/status`` payload now."""
         publisher = self.publisher
         assert publisher is not None
         stats = publisher.stats()
-        limit = self.depth_limit_hz()
-        return models.Status(
-            availability="online",
-            t=models.wall_time(),
-            t_mono=now,
-            state=self._state,  # type: ignore[arg-type]
-            camera=self.config.camera.name,
-            last_estimate_age_s=self._estimate_age(now),
-            message=self._message,
-            rates=models.Rates(
-                frame_hz=self.frames.rate(now),
-                estimate_hz=self.estimates.rate(now),
-                depth_hz=self.measurements.rate(now),
-                depth_limit_hz=_nonneg(limit),
-            ),
-            link=self._link_health(now),
+        log = self._parts.log
+        drops = models.Drops(
+            frames=self.frames_dropped(),
+            publish_queue=stats.queue_dropped,
+            backlog=stats.backlog_dropped,
+            log=log.stats().dropped if log is not None else 0,
+        )
+        return self.board.status(
+            now,
+            depth_limit_hz=self.depth_limit_hz(),
+            link=link_health(self._parts.link, now),
             mqtt=publisher.health(),
-            drops=models.Drops(
-                frames=self.frames_dropped(),
-                publish_queue=stats.queue_dropped,
-                backlog=stats.backlog_dropped,
-                log=self._parts.log.stats().dropped if self._parts.log else 0,
-            ),
-            version=__version__,
+            drops=drops,
         )
 
     def dashboard_snapshot(self) -> Snapshot | None:
@@ -996,11 +662,11 @@ class Daemon:
         source = self._parts.source
         return Snapshot(
             status=self.status_payload(now),
-            last_estimate_age_s=self._estimate_age(now),
-            bursts_accepted=self.bursts_accepted,
-            bursts_rejected=self.bursts_rejected,
+            last_estimate_age_s=self.board.estimate_age(now),
+            bursts_accepted=self.board.bursts_accepted,
+            bursts_rejected=self.board.bursts_rejected,
             frame_size=source.frame_size if source is not None else None,
-            message=self._message,
+            message=self.board.message,
         )
 
     async def _execute(self, payload: bytes) -> models.CommandReply:
@@ -1011,10 +677,6 @@ class Daemon:
                 t=models.wall_time(),
             )  # fmt: skip
         return await self.publisher.execute(payload)
-
-    def _estimate_age(self, now: float) -> float | None:
-        last = self._last_estimate_mono
-        return None if last is None else max(0.0, now - last)
 
     def _truth_z(self, frame_index: int) -> float | None:
         truth_for = self._parts.truth_for
@@ -1035,7 +697,7 @@ class Daemon:
         if self._sched_config is None:
             return None
         cfg = self.scheduler.config if self.scheduler is not None else self._sched_config
-        return depth_rate_limit(cfg, self._spacing).depth_hz
+        return depth_rate_limit(cfg, self.board.spacing).depth_hz
 
     def frames_dropped(self) -> int:
         """Frames lost before the core: by the source, the estimator queue or the result queue."""
@@ -1047,62 +709,13 @@ class Daemon:
             + self.results_dropped
         )
 
-    def _link_health(self, now: float) -> models.LinkHealth:
-        link = self._parts.link
-        if link is None:
-            return models.LinkHealth(connected=False)
-        h = link.health()
-        age = None if h.last_reply_monotonic is None else max(0.0, now - h.last_reply_monotonic)
-        return models.LinkHealth(
-            connected=h.connected,
-            bytes_in=h.bytes_in,
-            bytes_out=h.bytes_out,
-            replies=sum(h.replies.values()),
-            errors=sum(h.errors_by_code.values()),
-            timeouts=sum(h.timeouts.values()),
-            last_reply_age_s=age,
-            reconnects=h.reconnects,
-        )
-
-    def _frames_flowing(self, now: float) -> bool:
-        return self._last_frame_mono is not None and now - self._last_frame_mono < (
-            FRAMES_FLOWING_S
-        )
-
     def _snapshot(self, now: float, status: models.Status) -> ConsoleSnapshot:
-        rates = status.rates
-        link = status.link
-        mqtt = status.mqtt
-        assert rates is not None
-        assert link is not None
-        assert mqtt is not None
         sched = self.scheduler
-        pan, tilt = sched.pan_tilt_at(now) if sched is not None else (0.0, 0.0)
-        return ConsoleSnapshot(
-            camera=self.config.camera.name,
-            state=self._state,
-            uptime_s=now - self._t_start,
-            frame_hz=rates.frame_hz,
-            estimate_hz=rates.estimate_hz,
-            depth_hz=rates.depth_hz,
-            depth_limit_hz=rates.depth_limit_hz,
-            link_connected=link.connected,
-            link_timeouts=link.timeouts,
-            link_errors=link.errors,
-            link_reconnects=link.reconnects,
-            mqtt_connected=mqtt.connected,
-            mqtt_backlog=mqtt.backlog,
-            frames_dropped=self.frames_dropped(),
-            bursts_accepted=self.bursts_accepted,
-            bursts_rejected=self.bursts_rejected,
+        return self.board.snapshot(
+            now,
+            status,
             roles=dict(sched.stats.frames) if sched is not None else {},
-            depth_m=self._last_depth,
-            last_estimate_age_s=status.last_estimate_age_s,
-            best=self.config.estimators.best,
-            truth_z_m=self._last_truth_z,
-            size_m=self._last_size,
-            pan_deg=pan,
-            tilt_deg=tilt,
+            pan_tilt_deg=sched.pan_tilt_at(now) if sched is not None else (0.0, 0.0),
         )
 
 
@@ -1119,79 +732,10 @@ def _force_exit() -> None:
     os._exit(EXIT_FAILURE)
 
 
-def _open_capture(config: DffdConfig) -> FrameSource:
-    """The OpenCV frame source of ``[capture]`` (drivers/capture.py)."""
-    from drivers.capture import CaptureSettings, OpenCVFrameSource
-
-    cap = config.capture
-    assert cap.device is not None  # validated: v4l2 needs a device
-    settings = CaptureSettings(
-        device=cap.device,
-        width=cap.width,
-        height=cap.height,
-        fps=cap.fps,
-        fourcc=cap.fourcc,
-        buffer_size=1,  # one driver buffer: read() returns a fresh frame, not a stale one
-        gray=True,  # the estimator's input
-        queue_frames=CAPTURE_QUEUE_FRAMES,
-        latency_s=cap.latency_frames / cap.fps,
-    )
-    return OpenCVFrameSource(settings)
-
-
-def _scenario_world(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The ``[target]`` and ``[trajectory]`` tables of a world TOML (drivers/sim/data/worlds/).
-
-    The tables are validated by the
-    simulator's own config types (``drivers.sim.config.WorldConfig``) when applied.
-    """
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise DaemonError(
-            f"sim.scenario: cannot read {path}: {exc.strerror}; give a scenario name "
-            "(static, approach, paper-circle, figure-eight, random) or a TOML file path"
-        ) from exc
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise DaemonError(f"sim.scenario: {path} is not valid TOML: {exc}") from exc
-    target = data.get("target", {})
-    trajectory = data.get("trajectory")
-    if not isinstance(trajectory, dict) or not isinstance(target, dict):
-        raise DaemonError(
-            f"sim.scenario: {path} needs a [trajectory] table (and optionally [target]) "
-            "with the keys of drivers/sim/config.py TrajectoryConfig/TargetConfig"
-        )
-    return target, trajectory
-
-
-def _fin(value: float | None) -> float | None:
-    if value is None:
-        return None
-    v = float(value)
-    return v if math.isfinite(v) else None
-
-
-def _nonneg(value: float | None) -> float | None:
-    v = _fin(value)
-    return v if v is not None and v >= 0 else None
-
-
-def _vec(value: Any) -> tuple[float, float, float] | None:
-    if value is None:
-        return None
-    x, y, z = (float(c) for c in value)
-    if not all(math.isfinite(c) for c in (x, y, z)):
-        return None
-    return x, y, z
-
-
 __all__ = [
     "CAMERA_INIT_TIMEOUT_S",
     "SHUTDOWN_TIMEOUT_S",
     "Daemon",
     "DaemonError",
-    "EstimatorResult",
-    "EstimatorThread",
-    "RateMeter",
     "run",
 ]

@@ -1,0 +1,210 @@
+"""Status of the running daemon: achieved rates and the link's health, as payloads and rows."""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import TYPE_CHECKING
+
+from dffd import __version__
+from dffd.daemon.console import ConsoleSnapshot
+from dffd.daemon.payloads import nonneg
+from dffd.mqtt import models
+
+if TYPE_CHECKING:
+    from dffd.core.pipeline import Measurement
+    from drivers.visca.link import ViscaLink
+
+# Window over which achieved rates are computed.
+RATE_WINDOW_S = 5.0
+# Frames flow if the last one is younger than this (watchdog pings and READY depend on it).
+FRAMES_FLOWING_S = 1.0
+# Nominal bracket spacing (counts) for the rate limit until the core plans a burst.
+DEFAULT_SPACING_COUNTS = 300
+
+__all__ = [
+    "DEFAULT_SPACING_COUNTS",
+    "FRAMES_FLOWING_S",
+    "RATE_WINDOW_S",
+    "RateMeter",
+    "StatusBoard",
+    "link_health",
+]
+
+
+class StatusBoard:
+    """What the status reports, as the shell sees it happen: rates, bursts, the last estimate."""
+
+    def __init__(self, camera_name: str, best: models.EstimatorName, t_start: float) -> None:
+        self.camera_name = camera_name
+        self.best = best
+        self.t_start = t_start
+        self.frames = RateMeter()
+        self.estimates = RateMeter()
+        self.measurements = RateMeter()
+        self.bursts_accepted = 0
+        self.bursts_rejected = 0
+        self.state = "acquiring"
+        self.message: str | None = None  # what the operator should know (status, dashboard)
+        self.last_frame_mono: float | None = None
+        self.last_estimate_mono: float | None = None  # None: none since start or release
+        self.last_depth: dict[str, float | None] = {}
+        self.last_truth_z: float | None = None
+        self.last_size: float | None = None
+        self.spacing = DEFAULT_SPACING_COUNTS  # half the burst bracket (counts), for the limit
+
+    def on_frame(self, now: float) -> None:
+        """A frame was delivered at ``now``."""
+        self.last_frame_mono = now
+        self.frames.add(now)
+
+    def on_measurement(self, now: float, measurement: Measurement) -> None:
+        """The core closed a burst."""
+        if measurement.accepted:
+            self.bursts_accepted += 1
+        else:
+            self.bursts_rejected += 1
+        self.measurements.add(now)
+
+    def on_estimate(self, now: float, estimate: models.Estimate) -> None:
+        """An estimate was published."""
+        self.estimates.add(now)
+        self.last_depth = dict(estimate.depth_m.model_dump())
+        self.last_size = estimate.size_m
+        self.last_estimate_mono = now
+
+    def on_acquire(self) -> None:
+        """An acquire command: the core searches for the target."""
+        self.state, self.message = "acquiring", None
+
+    def on_release(self) -> None:
+        """A release command: idle, and the last depths are no longer current."""
+        self.state = "idle"
+        self.message = "released by command: no depths until an acquire command"
+        self.last_estimate_mono = None
+        self.last_depth = {}
+
+    def estimate_age(self, now: float) -> float | None:
+        """Seconds since the last published estimate (None: none since start or release)."""
+        last = self.last_estimate_mono
+        return None if last is None else max(0.0, now - last)
+
+    def on_plan(self, plan: tuple[int, int, int]) -> None:
+        """The core planned a burst (its spacing sets the depth-rate limit)."""
+        self.spacing = max(1, (max(plan) - min(plan)) // 2)
+
+    def frames_flowing(self, now: float) -> bool:
+        """A frame arrived within :data:`FRAMES_FLOWING_S`."""
+        last = self.last_frame_mono
+        return last is not None and now - last < FRAMES_FLOWING_S
+
+    def status(
+        self,
+        now: float,
+        *,
+        depth_limit_hz: float | None,
+        link: models.LinkHealth,
+        mqtt: models.MqttHealth,
+        drops: models.Drops,
+    ) -> models.Status:
+        """The retained ``…/status`` payload now."""
+        return models.Status(
+            availability="online",
+            t=models.wall_time(),
+            t_mono=now,
+            state=self.state,  # type: ignore[arg-type]
+            camera=self.camera_name,
+            last_estimate_age_s=self.estimate_age(now),
+            message=self.message,
+            rates=models.Rates(
+                frame_hz=self.frames.rate(now),
+                estimate_hz=self.estimates.rate(now),
+                depth_hz=self.measurements.rate(now),
+                depth_limit_hz=nonneg(depth_limit_hz),
+            ),
+            link=link,
+            mqtt=mqtt,
+            drops=drops,
+            version=__version__,
+        )
+
+    def snapshot(
+        self,
+        now: float,
+        status: models.Status,
+        *,
+        roles: dict[str, int],
+        pan_tilt_deg: tuple[float, float],
+    ) -> ConsoleSnapshot:
+        """The console's view of ``status`` and the board."""
+        rates, link, mqtt, drops = status.rates, status.link, status.mqtt, status.drops
+        assert rates is not None
+        assert link is not None
+        assert mqtt is not None
+        assert drops is not None
+        return ConsoleSnapshot(
+            camera=self.camera_name,
+            state=self.state,
+            uptime_s=now - self.t_start,
+            frame_hz=rates.frame_hz,
+            estimate_hz=rates.estimate_hz,
+            depth_hz=rates.depth_hz,
+            depth_limit_hz=rates.depth_limit_hz,
+            link_connected=link.connected,
+            link_timeouts=link.timeouts,
+            link_errors=link.errors,
+            link_reconnects=link.reconnects,
+            mqtt_connected=mqtt.connected,
+            mqtt_backlog=mqtt.backlog,
+            frames_dropped=drops.frames,
+            bursts_accepted=self.bursts_accepted,
+            bursts_rejected=self.bursts_rejected,
+            roles=roles,
+            depth_m=self.last_depth,
+            last_estimate_age_s=status.last_estimate_age_s,
+            best=self.best,
+            truth_z_m=self.last_truth_z,
+            size_m=self.last_size,
+            pan_deg=pan_tilt_deg[0],
+            tilt_deg=pan_tilt_deg[1],
+        )
+
+
+class RateMeter:
+    """Events per second over a sliding window (bounded memory)."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S, max_events: int = 4096) -> None:
+        self.window_s = window_s
+        self._times: deque[float] = deque(maxlen=max_events)
+        self.count = 0
+
+    def add(self, t: float) -> None:
+        """Record one event at ``t``."""
+        self._times.append(t)
+        self.count += 1
+
+    def rate(self, now: float) -> float:
+        """Events per second over the window ending at ``now``."""
+        while self._times and now - self._times[0] > self.window_s:
+            self._times.popleft()
+        if len(self._times) < 2:
+            return 0.0
+        span = max(now - self._times[0], self._times[-1] - self._times[0])
+        return (len(self._times) - 1) / span if span > 0 else 0.0
+
+
+def link_health(link: ViscaLink | None, now: float) -> models.LinkHealth:
+    """The ``link`` block of the status (not connected when there is no link yet)."""
+    if link is None:
+        return models.LinkHealth(connected=False)
+    h = link.health()
+    age = None if h.last_reply_monotonic is None else max(0.0, now - h.last_reply_monotonic)
+    return models.LinkHealth(
+        connected=h.connected,
+        bytes_in=h.bytes_in,
+        bytes_out=h.bytes_out,
+        replies=sum(h.replies.values()),
+        errors=sum(h.errors_by_code.values()),
+        timeouts=sum(h.timeouts.values()),
+        last_reply_age_s=age,
+        reconnects=h.reconnects,
+    )
