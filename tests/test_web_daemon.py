@@ -18,6 +18,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from tests.conftest import Mosquitto, free_port, wait_for_port
 from tests.test_daemon_e2e import (
+    EXIT_TIMEOUT_S,
     MESSAGE_TIMEOUT_S,
     STARTUP_TIMEOUT_S,
     DaemonProcess,
@@ -101,7 +102,14 @@ async def test_release_idle_then_acquire_without_roi(
         )
         assert sub.invalid == []
         metrics = await asyncio.to_thread(_get_text, f"http://127.0.0.1:{port}/metrics")
-    names = {f.name for f in text_string_to_metric_families(metrics)}
+    families = list(text_string_to_metric_families(metrics))
+    names = {f.name for f in families}
+    samples = {s.name: s.value for f in families for s in f.samples if not s.labels}
+    # Exposure -> publish on one clock: positive and well under a second on average.
+    n_latency = samples["dffd_publish_latency_seconds_count"]
+    assert n_latency > 20
+    assert 0 < samples["dffd_publish_latency_seconds_sum"] / n_latency < 1.0
+    assert samples["dffd_core_cpu_seconds_count"] > n_latency  # every frame, not every estimate
     for name in (
         "dffd_frame_rate_hz", "dffd_estimate_rate_hz", "dffd_depth_rate_hz",
         "dffd_depth_rate_limit_hz", "dffd_publish_latency_seconds", "dffd_link_errors",
@@ -109,8 +117,9 @@ async def test_release_idle_then_acquire_without_roi(
         "dffd_mqtt_backlog_messages", "dffd_core_cpu_seconds",
     ):  # fmt: skip
         assert name in names, name
-    code, _ = daemon.terminate()
+    code, elapsed = daemon.terminate()
     assert code == 0, daemon.log()
+    assert elapsed < EXIT_TIMEOUT_S, elapsed
 
 
 @pytest.mark.timeout(120)
