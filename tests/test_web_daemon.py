@@ -10,6 +10,7 @@ import os
 import time
 import urllib.request
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -218,3 +219,31 @@ def _get_text(url: str) -> str:
 
 def _get_json(url: str) -> Any:
     return json.loads(_get_text(url))
+
+
+def test_console_never_shows_a_stale_depth_as_current() -> None:
+    from rich.console import Console as RichConsole
+
+    from dffd.daemon.console import ConsoleSnapshot, is_stale, render
+
+    base = ConsoleSnapshot(
+        camera="sim", state="tracking", uptime_s=10.0, frame_hz=30.0, estimate_hz=10.0,
+        depth_hz=2.0, depth_limit_hz=2.3, link_connected=True, link_timeouts=0, link_errors=0,
+        link_reconnects=0, mqtt_connected=True, mqtt_backlog=0, frames_dropped=0,
+        bursts_accepted=3, bursts_rejected=0, depth_m={"lpv": 4.0}, last_estimate_age_s=0.1,
+    )  # fmt: skip
+
+    def text(snap: ConsoleSnapshot) -> str:
+        console = RichConsole(record=True, width=160)
+        console.print(render(snap))
+        return console.export_text()
+
+    assert not is_stale(base)
+    assert "not current" not in text(base)
+    for stale in (
+        replace(base, last_estimate_age_s=3.0),
+        replace(base, last_estimate_age_s=None, state="idle"),
+        replace(base, state="lost"),
+    ):
+        assert is_stale(stale)
+        assert "not current" in text(stale)
