@@ -1,0 +1,145 @@
+"""The scheduler's configuration: timing, burst policy, link and pan/tilt geometry."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from dffd.scheduler.geometry import pixel_offset_to_deg
+from dffd.scheduler.wire import PAN_TILT_DRIVE_BYTES, link_time_s
+
+PanTiltMode = Literal["drive", "absolute", "off"]
+BurstMode = Literal["rolling", "classic"]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SchedulerConfig:
+    """Timing, policy and geometry the scheduler needs.
+
+    Built from the service config by :func:`dffd.wiring.scheduler_config`: the fields it sets
+    have no defaults here (the config's are the only ones); the rest are the scheduler's own.
+    """
+
+    fps: float
+    # Exposure duration (s); None = the full frame period (the conservative assumption).
+    exposure_s: float | None
+    # Frames between exposure and delivery (measured by `dffd calibrate`); only the rate limit of
+    # the non-predictive mode and the pan/tilt delay depend on it.
+    capture_latency_frames: int
+    # Bound on the error of frame timestamps (s): a frame counts as exposed off a focus move only
+    # with this much to spare either side; covers capture timestamp jitter and reply transit.
+    timing_margin_s: float
+    # Burst policy. ``classic``: three settings mid → end → end → mid per burst, then
+    # ``burst_every_frames`` tracking frames. ``rolling``: a triangle lo, mid, hi, mid, lo, … with
+    # ``max(1, burst_every_frames)`` tracking frames at each pass through the middle; every
+    # arrival at an end closes a burst with the previous end and the middle frame between.
+    burst_mode: BurstMode
+    burst_every_frames: int
+    sigma_trigger_m: float | None
+    snap_counts: int = 40
+    snap_fraction: float = 0.25
+    retarget_steps: float = 0.25
+    # Focus motor and link timing.
+    focus_speed_counts_per_s: float
+    focus_tolerance_counts: int = 2
+    baudrate: int
+    # The camera accepts one command per video field (docs/design.md §6: ~1V, 16.7 ms at 60 Hz).
+    command_slot_s: float = 1.0 / 60.0
+    initial_focus_counts: int | None = None
+    focus_inquiry_interval_s: float = 0.05
+    # Pan/tilt.
+    pan_tilt_mode: PanTiltMode
+    focal_length_mm: float
+    pixel_pitch_mm: float
+    frame_size: tuple[int, int]
+    pan_tilt_gain_per_s: float  # commanded deg/s per degree of error
+    pan_tilt_feedforward: bool  # add the target's filtered angular velocity
+    pan_tilt_velocity_tau_s: float = 0.3  # time constant of that velocity filter
+    pan_tilt_lost_s: float  # no centroid for this long: the target is lost → search
+    # Search after a loss: keep driving towards the target's extrapolated direction (its last
+    # direction plus its filtered angular velocity times the time since) for this long, then
+    # return to the last direction it was seen in and hold there (0: hold at once).
+    pan_tilt_search_s: float
+    # Consecutive frames with a contour before the core's burst plans are followed: bursts (long
+    # focus travel, transit frames) start only once the contour is stable (0: no such gate).
+    acquire_stable_frames: int
+    # Hysteresis band (deg): a correction starts when the error projected to the end of the free
+    # window exceeds it, and runs until that error is cancelled.
+    pan_tilt_deadband_deg: float
+    # Cap on |correction speed − ω̂| (deg/s) unless the proportional gain asks for more: the core's
+    # tracker predicts image motion at constant velocity and searches ±12 px along its normals
+    # (12 px × 30 fps ≈ 3.3°/s at f = 31 mm, 5 µm pixels).
+    pan_tilt_max_correction_deg_s: float
+    # Aim of a correction: the error left when the quiet speed resumes is (q − ω̂)·lead, so the
+    # drift through the measured frames carries it across zero (~half a rolling-bracket cycle).
+    pan_tilt_lead_s: float = 0.2
+    # Correction horizon while no bursts run (acquisition): no measured exposures to keep clear.
+    pan_tilt_horizon_s: float = 0.3
+    # Position resolution of the head (deg): EVI-D100 14.4 counts/°. Inquiry replies are
+    # quantised to it; the model is kept within it rather than snapped.
+    pan_tilt_resolution_deg: float = 1.0 / 14.4
+    pan_tilt_min_interval_s: float
+    pan_tilt_poll_interval_s: float = 0.25
+    absolute_speed_index: int = 0x10
+    pan_sign: int = 1  # +1: image x to the right is positive pan
+    tilt_sign: int = 1  # +1: image y upwards is positive tilt
+
+    def __post_init__(self) -> None:
+        if self.fps <= 0:
+            raise ValueError(f"fps must be > 0 (got {self.fps})")
+        if self.exposure_s is not None and not 0 < self.exposure_s <= 1.0 / self.fps:
+            raise ValueError(f"exposure_s must be in (0, 1/fps] (got {self.exposure_s})")
+        if self.burst_every_frames < 0:
+            raise ValueError(f"burst_every_frames must be >= 0 (got {self.burst_every_frames})")
+        if self.burst_mode not in ("rolling", "classic"):
+            raise ValueError(f"burst_mode must be 'rolling' or 'classic' (got {self.burst_mode!r})")
+        if self.focus_speed_counts_per_s <= 0:
+            raise ValueError("focus_speed_counts_per_s must be > 0")
+        if self.baudrate <= 0:
+            raise ValueError(f"baudrate must be > 0 (got {self.baudrate})")
+        if self.pan_sign not in (1, -1) or self.tilt_sign not in (1, -1):
+            raise ValueError("pan_sign and tilt_sign must be +1 or -1")
+        if self.pan_tilt_search_s < 0 or self.pan_tilt_lost_s < 0:
+            raise ValueError("pan_tilt_lost_s and pan_tilt_search_s must be >= 0")
+        if self.acquire_stable_frames < 0:
+            raise ValueError("acquire_stable_frames must be >= 0")
+
+    @property
+    def period_s(self) -> float:
+        """Nominal frame period."""
+        return 1.0 / self.fps
+
+    @property
+    def guard_s(self) -> float:
+        """Scheduling guard around a claimed exposure: the tag check's margin plus the
+        prediction's own error bound (both ``timing_margin_s``), so a claimed frame passes the
+        check even when its timestamp arrives off by the margin."""
+        return 2.0 * self.timing_margin_s
+
+    @property
+    def exposure(self) -> float:
+        """Exposure duration used for tagging (s)."""
+        return self.exposure_s if self.exposure_s is not None else self.period_s
+
+    @property
+    def pan_tilt_latency_s(self) -> float:
+        """Longest time from writing a Pan-tiltDrive to the motors changing: its bytes, then up
+        to one camera command slot (the camera takes commands at field boundaries), plus the
+        timing margin."""
+        return (
+            link_time_s(PAN_TILT_DRIVE_BYTES, self.baudrate)
+            + self.command_slot_s
+            + self.timing_margin_s
+        )
+
+    @property
+    def pan_tilt_model_delay_s(self) -> float:
+        """Mean time from writing a pan/tilt command to the motors changing (the model's)."""
+        return link_time_s(PAN_TILT_DRIVE_BYTES, self.baudrate) + self.command_slot_s / 2.0
+
+    @property
+    def pan_tilt_emergency_deg(self) -> float:
+        """Error (deg) corrected at once, measured frames or not: half-way to the nearer frame
+        edge."""
+        half = min(self.frame_size) / 4.0
+        return pixel_offset_to_deg(half, self.focal_length_mm, self.pixel_pitch_mm)
