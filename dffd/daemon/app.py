@@ -32,12 +32,12 @@ serial port, a video device (``[capture]`` → :class:`drivers.capture.OpenCVFra
 broker it is the lab service.
 
 Acquisition (the same live and on the simulator): the lens goes to
-``scheduler.initial_focus_depth_m``; while the core is not tracking only frames exposed at a
-stationary focus reach it (a contour started on a frame blurred by focus travel is lost within a
-few frames); bursts start after ``acquire_stable_frames`` frames with a contour; pan/tilt follows
-with velocity feed-forward from the first two centroids; after a loss the head searches along the
-target's predicted path, then returns to where it was last seen, while the core keeps searching
-(see :mod:`dffd.scheduler`).
+``scheduler.initial_focus_depth_m``; every frame reaches the core, those of the start-up focus
+move too (a target crossing the view fast is caught only there; :mod:`dffd.step`); bursts
+start after ``acquire_stable_frames`` frames with a contour; pan/tilt follows with velocity
+feed-forward from the first two centroids; after a loss the head searches along the target's
+predicted path, then returns to where it was last seen, while the core keeps searching (see
+:mod:`dffd.scheduler`).
 
 Shutdown (SIGTERM/SIGINT): stop pan/tilt, publish the retained ``offline`` status, flush the
 JSONL log, exit 0 — all within :data:`SHUTDOWN_TIMEOUT_S`. sd_notify READY is sent once the
