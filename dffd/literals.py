@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-__all__ = ["BestEstimator", "BurstMode", "BurstPolicy", "PanTiltMode"]
+__all__ = ["BestEstimator", "BurstMode", "BurstPolicy", "FocusMeasure", "PanTiltMode"]
 
 # The estimators that can be published as ``best`` (the raw measurement cannot).
 BestEstimator = Literal["lpv", "kf", "cf2", "cf1"]
@@ -18,3 +18,7 @@ BurstPolicy = Literal["every_n", "sigma"]
 BurstMode = Literal["rolling", "classic"]
 # drive: Pan-tiltDrive speeds; absolute: absolute moves; off: the head stays where it is.
 PanTiltMode = Literal["drive", "absolute", "off"]
+# The focus measure of a frame: "edge_variance", the second moment of the edge-derivative profile
+# (any PSF: blur variances add); "peak_gradient", the paper's 1/mean(max ||∇I||²), a parabola in
+# the focus setting only for a Gaussian PSF (docs/estimation.md §8).
+FocusMeasure = Literal["edge_variance", "peak_gradient"]

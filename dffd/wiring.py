@@ -110,6 +110,7 @@ def pipeline_config(settings: DffdConfig) -> PipelineConfig:
         cf2_sigma_z=est.sigma_z,
         rho_min=est.lpv_rho_min_per_s,
         rho_max=est.lpv_rho_max_per_s,
+        focus_measure=est.focus_measure,
     )
 
 

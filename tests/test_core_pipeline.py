@@ -10,6 +10,7 @@ import pytest
 from dffd.core.pipeline import Measurement, Pipeline, PipelineConfig
 from dffd.core.synthetic import DiscScene, closed_loop, render_scene, synthetic_lens
 from dffd.core.types import FrameTag
+from dffd.literals import FocusMeasure
 from drivers.frames import Frame
 
 LENS = synthetic_lens()
@@ -144,10 +145,14 @@ def test_deterministic() -> None:
     assert run() == run()
 
 
-def test_rolling_bursts_close_with_the_previous_end_and_the_middle_frame() -> None:
+@pytest.mark.parametrize("measure", ["peak_gradient", "edge_variance"])
+def test_rolling_bursts_close_with_the_previous_end_and_the_middle_frame(
+    measure: FocusMeasure,
+) -> None:
     """Triangle lo, mid, hi, mid, lo, …: every end (tagged slot 2 alone) closes a burst with the
-    previous end and the tracking frame between; the fit is accurate and motion-compensated."""
-    pipe = Pipeline(PipelineConfig(plan_lead_s=0.0), LENS)
+    previous end and the tracking frame between; the fit is accurate and motion-compensated
+    with either focus measure."""
+    pipe = Pipeline(PipelineConfig(plan_lead_s=0.0, focus_measure=measure), LENS)
     rng = np.random.default_rng(3)
     dt, index, bid = 1.0 / 30, 0, 0
     z0, zdot = 5.0, -0.25  # approaching at 0.25 m/s
@@ -183,6 +188,9 @@ def test_rolling_bursts_close_with_the_previous_end_and_the_middle_frame() -> No
         assert len(set(m.focus_counts)) == 3
         measurements.append(m)
     assert opened == 1  # only the first end opens a sequence
+    # edge moments: only the full-range bracket's far end (no depth yet) overflows the normal
+    # lines, in the two bursts it closes
+    assert pipe.measure_fallbacks == (2 if measure == "edge_variance" else 0)
     accepted = [m for m in measurements if m.accepted and m.z_m is not None]
     assert len(accepted) >= 20
     errors = [m.z_m - (z0 + zdot * m.t) for m in accepted[3:] if m.z_m is not None]

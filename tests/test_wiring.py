@@ -43,12 +43,21 @@ def test_scheduler_config_maps_every_scheduler_setting() -> None:
 
 def test_pipeline_config_takes_the_service_estimator_settings() -> None:
     cfg = DffdConfig.model_validate(
-        {"estimators": {"sigma_psi": 0.07, "sigma_beta": 0.02, "best": "kf"}}
+        {
+            "estimators": {
+                "sigma_psi": 0.07,
+                "sigma_beta": 0.02,
+                "best": "kf",
+                "focus_measure": "edge_variance",
+            }
+        }
     )
     pc = pipeline_config(cfg)
     assert (pc.cf2_sigma_psi, pc.cf2_sigma_beta, pc.best) == (0.07, 0.02, "kf")
+    assert pc.focus_measure == "edge_variance"
     default = pipeline_config(DffdConfig())
     assert default.cf2_sigma_psi == DffdConfig().estimators.sigma_psi
+    assert default.focus_measure == DffdConfig().estimators.focus_measure
 
 
 def test_bench_pipeline_config_is_the_service_one_with_the_scenario_target() -> None:

@@ -20,7 +20,7 @@ from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
 
 from dffd.config.explain import ENV_NESTED_DELIMITER, ENV_PREFIX, ConfigError, show_value
-from dffd.literals import BestEstimator, BurstMode, BurstPolicy, PanTiltMode
+from dffd.literals import BestEstimator, BurstMode, BurstPolicy, FocusMeasure, PanTiltMode
 from dffd.resources import DEFAULT_LENS, ResourceNotFoundError, is_lens_name, lens_table
 from dffd.web.listen import WebConfigError, is_loopback, parse_listen
 from drivers.sim.resources import world_file, world_names
@@ -225,6 +225,11 @@ class EstimatorsSection(_Section):
     )
     lpv_rho_min_per_s: Annotated[float, Field(ge=-100, le=100)] = -2.0
     lpv_rho_max_per_s: Annotated[float, Field(ge=-100, le=100)] = 2.0
+    focus_measure: FocusMeasure = Field(
+        default="peak_gradient",
+        description="focus cost of a burst frame: peak_gradient (the paper's) or edge_variance "
+        "(any PSF, noisier; docs/estimation.md §8)",
+    )
 
     @model_validator(mode="after")
     def _rho_range_ordered(self) -> EstimatorsSection:

@@ -11,18 +11,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, NamedTuple, Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from dffd.core.lens import Lens
+from dffd.literals import FocusMeasure
 
 REASON_OK = "ok"
 
-# "edge_variance": second moment of the edge-derivative profile (any PSF: blur variances add);
-# "peak_gradient": the paper's 1/mean(max ||∇I||²), a parabola only for a Gaussian PSF.
-FocusMeasure = Literal["edge_variance", "peak_gradient"]
 DEFAULT_FOCUS_MEASURE: FocusMeasure = "edge_variance"
 
 

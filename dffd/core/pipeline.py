@@ -5,10 +5,13 @@ Per frame (pure, synchronous, deterministic; no clock but the frames' own ``t``)
 * ``acquiring``/``lost``: look for the target (pending ROI, else near the last position, else the
   whole frame when ``auto_acquire``); on success the contour is refined on that frame.
 * every frame: the active contour is updated (transit frames: translation only).
-* burst frames: the focus cost (2) is taken along the normals; when the burst is complete (its
+* burst frames: the focus cost (``focus_measure``: (2) or the edge second moment) is taken along
+  the normals; when the burst is complete (its
   ``burst_size`` slots, or a track frame / another burst id arrives) the parabola is fitted and a
   :class:`Measurement` is emitted (a burst left with fewer than three frames is not emitted: it is
-  counted in :attr:`Pipeline.burst_rejections` with the reason).
+  counted in :attr:`Pipeline.burst_rejections` with the reason). A burst one of whose frames has
+  no edge-moment cost (its blur overflows the normal lines: the first, full-range brackets) is
+  fitted with (2) on all its frames and counted in :attr:`Pipeline.measure_fallbacks`.
 * rolling bursts (the scheduler's ``rolling`` mode, a triangle lo, mid, hi, mid, lo, … of focus
   settings): the end frames are tagged ``burst`` with slot 2 alone; such a frame closes a burst
   made of the previous end frame (the other side of the bracket), the last tracking frame between
@@ -40,10 +43,11 @@ import numpy.typing as npt
 from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig, find_target
 from dffd.core.filters import CF1, CF2, DepthKF, Differentiator, KFNoise, LPVGains, LPVObserver
 from dffd.core.filters import cf2_gains as _cf2_gains
-from dffd.core.focus import FitConfig, PlanConfig, fit_burst, focus_cost
+from dffd.core.focus import FitConfig, PlanConfig, fit_burst, frame_cost
 from dffd.core.focus import plan_burst as _plan_burst
 from dffd.core.geometry import VelocityEstimator, camera_point, to_world
 from dffd.core.lens import Lens
+from dffd.literals import FocusMeasure
 from drivers.frames import Frame
 
 from .types import FrameTag
@@ -75,6 +79,9 @@ class PipelineConfig:
     # (chief ray; lenses whose image size "breathes" with focus)
     magnification: Literal["thin_lens", "pinhole"] = "pinhole"
     transport_measurements: bool = True
+    # Focus measure of a burst frame (dffd.core.focus.frame_cost): "peak_gradient" is the
+    # paper's cost (2); "edge_variance" holds for any PSF but is noisier (docs/estimation.md §8).
+    focus_measure: FocusMeasure = "peak_gradient"
     # Burst motion compensation: the target's sharp setting moves during a burst (~0.6 s; at
     # 0.25 m/s and 8 m that is ~2 µm of v against ~0.6 µm of fit noise). The size ratio gives
     # each frame's depth relative to the burst mid-time, z_i = z s(t_mid)/s(t_i), so every focus
@@ -188,8 +195,9 @@ class _BurstSample:
     t: float
     counts: int
     v_mm: float
-    g: float
+    g: float  # cost of the configured measure (NaN: none on this frame)
     sigma_g: float
+    peak: tuple[float, float] | None  # cost (2) when the measure is another one (its fallback)
 
 
 class Pipeline:
@@ -238,6 +246,8 @@ class Pipeline:
         self._v_cache: dict[int, float] = {}  # focus counts -> v (mm), see _v_from_counts
         # Bursts not emitted (fewer than three frames), by reason.
         self.burst_rejections: Counter[str] = Counter()
+        # Bursts fitted with cost (2) because a frame had no cost of the configured measure.
+        self.measure_fallbacks = 0
         self._reset_estimators()
 
     # -- public API -------------------------------------------------------------------------
@@ -419,11 +429,16 @@ class Pipeline:
     def _cost_sample(
         self, frame: Frame, counts: int, obs: BoundaryObservation
     ) -> _BurstSample | None:
-        cost = focus_cost(obs.peak_sq, self._tracker.config.trim_fraction)
-        if cost is None:
+        trim = self._tracker.config.trim_fraction
+        measure = self.config.focus_measure
+        cost = frame_cost(obs, measure, trim)
+        peak = None if measure == "peak_gradient" else frame_cost(obs, "peak_gradient", trim)
+        if cost is None and peak is None:
             return None
-        v = self._v_from_counts(counts)
-        return _BurstSample(frame.index, frame.t, counts, v, cost[0], cost[1])
+        g, sigma_g = (math.nan, math.nan) if cost is None else cost
+        return _BurstSample(
+            frame.index, frame.t, counts, self._v_from_counts(counts), g, sigma_g, peak
+        )
 
     def _discard_burst(self) -> None:
         self._burst = []
@@ -447,6 +462,15 @@ class Pipeline:
         for s in samples:  # sequential sum (as np.mean of a few values), no array
             t_sum += s.t
         t_mid = t_sum / len(samples)
+        if any(math.isnan(s.g) for s in samples):
+            # one frame's blur overflowed the edge-moment window: the whole burst on cost (2)
+            if any(s.peak is None for s in samples):
+                reason = "a frame without a focus cost"
+                self.burst_rejections[reason] += 1
+                logger.debug("burst %d rejected: %s", bid, reason)
+                return None
+            samples = [replace(s, g=s.peak[0], sigma_g=s.peak[1]) for s in samples if s.peak]
+            self.measure_fallbacks += 1
         v = [s.v_mm for s in samples]
         g = [s.g for s in samples]
         sg = [s.sigma_g for s in samples]
