@@ -1,16 +1,32 @@
-"""One core step: a tagged frame in, the core's output and the scheduler's feedback out.
+"""One core step: a tagged frame in, the core's output, 3D tracks and scheduler feedback out.
 
 The daemon's estimator thread, the lock-step bench and ``dffd replay`` all process frames with
 :meth:`CoreStep.step`, so the estimates a user gets from the service are the ones the bench
 scores and a replay reproduces. Pure and synchronous: no I/O, no clock.
+
+Every frame with an estimate also steps the 3D trackers (:mod:`dffd.core.tracking3d`): the
+measurement is the estimate's world position with the covariance of its direction and depth
+(docs/tracking3d.md). The service runs ``("mmae",)``; the bench adds ``"imm"`` and ``"cv"``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from dffd.core.pipeline import Pipeline, PipelineConfig, PipelineOutput
+import numpy as np
+import numpy.typing as npt
+
+from dffd.core.pipeline import Estimate, Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.tracking3d import (
+    CameraModel,
+    DirectionDepth,
+    Track3DEstimate,
+    Tracker3DBank,
+    TrackerKind,
+    cartesian_measurement,
+)
 
 if TYPE_CHECKING:
     from dffd.core.lens import Lens
@@ -18,7 +34,12 @@ if TYPE_CHECKING:
     from dffd.scheduler import Scheduler
     from drivers.frames import Frame
 
-__all__ = ["CoreStep", "Feedback", "StepResult"]
+FloatArray = npt.NDArray[np.float64]
+__all__ = ["SERVICE_TRACKERS", "CoreStep", "Feedback", "StepResult"]
+
+# The 3D trackers the service runs: the multiple-model filter it publishes. The bench runs
+# every kind (dffd.core.tracking3d.TRACKER_KINDS) to compare them on the same frames.
+SERVICE_TRACKERS: tuple[TrackerKind, ...] = ("mmae",)
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,24 +67,42 @@ class Feedback:
 
 @dataclass(frozen=True, slots=True)
 class StepResult:
-    """One processed frame: the core's output and the scheduler's feedback."""
+    """One processed frame: the core's output, the 3D tracks and the scheduler's feedback."""
 
     frame_index: int
     tag: FrameTag
     output: PipelineOutput
     feedback: Feedback
+    # Each tracker kind's estimate at this frame (only on frames with an estimate, and only
+    # kinds that hold a track); the first kind of the core's bank is the published one.
+    tracks: Mapping[str, Track3DEstimate] = field(default_factory=dict)
+    published_kind: str | None = None
+
+    @property
+    def track(self) -> Track3DEstimate | None:
+        """The published tracker's estimate at this frame, if any."""
+        return None if self.published_kind is None else self.tracks.get(self.published_kind)
 
 
 class CoreStep:
     """The estimation core as every runner drives it, one tagged frame at a time."""
 
-    def __init__(self, pipeline: Pipeline) -> None:
+    def __init__(
+        self, pipeline: Pipeline, trackers: Sequence[TrackerKind] = SERVICE_TRACKERS
+    ) -> None:
         self.pipeline = pipeline
+        self.trackers = Tracker3DBank(trackers)
+        self._camera: CameraModel | None = None
 
     @classmethod
-    def build(cls, config: PipelineConfig, lens: Lens) -> CoreStep:
-        """A fresh core of ``config`` on ``lens``."""
-        return cls(Pipeline(config, lens))
+    def build(
+        cls,
+        config: PipelineConfig,
+        lens: Lens,
+        trackers: Sequence[TrackerKind] = SERVICE_TRACKERS,
+    ) -> CoreStep:
+        """A fresh core of ``config`` on ``lens`` running the 3D ``trackers``."""
+        return cls(Pipeline(config, lens), trackers)
 
     def step(self, frame: Frame, tag: FrameTag) -> StepResult:
         """Process one frame exposed as ``tag`` says; the estimate (if any) and the feedback."""
@@ -86,4 +125,35 @@ class CoreStep:
             if tag.focus_counts is not None:
                 plan = pipeline.plan_burst(tag.focus_counts)
         feedback = Feedback(frame.t, sigma, plan, centroid, tag.pan_deg, tag.tilt_deg)
-        return StepResult(frame.index, tag, out, feedback)
+        tracks = self._track(frame, out)
+        return StepResult(frame.index, tag, out, feedback, tracks, self.trackers.kinds[0])
+
+    def _track(self, frame: Frame, out: PipelineOutput) -> dict[str, Track3DEstimate]:
+        """Step the 3D trackers on a frame with an estimate (a new target forgets the track)."""
+        est = out.estimate
+        if est is None:
+            if self.pipeline.state in ("idle", "acquiring"):
+                self.trackers.reset()  # released, or told to acquire: the next target is new
+            return {}
+        return self.trackers.step(est.t, self._measurement(frame, est))
+
+    def _measurement(self, frame: Frame, est: Estimate) -> tuple[FloatArray, FloatArray] | None:
+        """The estimate's world position and its covariance; None without depth or σ."""
+        if est.position_world_m is None or est.z_m is None or est.sigma_m is None:
+            return None
+        h, w = frame.image.shape[:2]
+        camera = self._camera
+        if camera is None or camera.principal_point_px != ((w - 1) / 2.0, (h - 1) / 2.0):
+            lens = self.pipeline.lens
+            # The covariance's lateral part scales with pitch/image distance; the focal length
+            # stands for the image distance (they differ by f/(z − f), ~3 % at 1 m): the lateral
+            # σ are millimetres against a depth σ of centimetres.
+            camera = self._camera = CameraModel.centred(
+                (w, h), lens.pixel_pitch_mm, lens.focal_length_mm
+            )
+        meas = DirectionDepth(
+            est.centroid_px, est.pan_deg, est.tilt_deg, est.z_m, max(est.sigma_m, 1e-6)
+        )
+        _, cov = cartesian_measurement(meas, camera)
+        # The position the pipeline published (its image distance at the frame's focus).
+        return np.asarray(est.position_world_m, dtype=np.float64), cov

@@ -14,11 +14,14 @@ from typing import TYPE_CHECKING, Any
 
 from dffd.core.pipeline import PipelineConfig
 from dffd.scheduler import SchedulerConfig, pixel_offset_to_deg
-from dffd.step import CoreStep
+from dffd.step import SERVICE_TRACKERS, CoreStep
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from dffd.config import DffdConfig
     from dffd.core.lens import Lens
+    from dffd.core.tracking3d import TrackerKind
     from drivers.frames import FrameSource
     from drivers.sim.config import SimCameraConfig
 
@@ -41,9 +44,14 @@ class WiringError(ValueError):
     """The configuration names something that cannot be built; the message says what to do."""
 
 
-def build_core(settings: DffdConfig, lens: Lens) -> CoreStep:
-    """The service's estimation core on ``lens``, holding ``[target] roi`` if one is given."""
-    core = CoreStep.build(pipeline_config(settings), lens)
+def build_core(
+    settings: DffdConfig, lens: Lens, trackers: Sequence[TrackerKind] = SERVICE_TRACKERS
+) -> CoreStep:
+    """The service's estimation core on ``lens``, holding ``[target] roi`` if one is given.
+
+    ``trackers``: the 3D tracker kinds it runs (the first is published); the bench runs all.
+    """
+    core = CoreStep.build(pipeline_config(settings), lens, trackers)
     if settings.target.roi is not None:
         core.pipeline.acquire_roi(*settings.target.roi)
     return core

@@ -39,6 +39,7 @@ from dffd.actuation import completion_timeout_s, report_done, report_failed, req
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.core.pipeline import PipelineConfig, PipelineOutput
+from dffd.core.tracking3d import TRACKER_KINDS
 from dffd.core.types import FrameTag
 from dffd.scheduler import (
     Action,
@@ -67,6 +68,7 @@ from hil.baselines import (
 from hil.results import BurstRecord, RunResult
 from hil.scenario import Scenario, TrajectorySpec
 from hil.simbuild import T_FIRST_FRAME_S, SimSession, build_session
+from hil.track3d import Track3DScore, truth_3d
 
 logger = logging.getLogger(__name__)
 
@@ -181,7 +183,8 @@ class _Runner:
         # The driver's profile of the configured model converts degrees and speed codes.
         self.profile = profile_for(dcfg.camera.model)
         self.link = _Executor(VirtualBus(self.device), self.profile, self._network_changed)
-        self.core = CoreStep.build(pipeline_config(scenario, dcfg), self.lens)
+        # Every 3D tracker kind on the same frames: MMAE (published) against IMM and lone CV.
+        self.core = CoreStep.build(pipeline_config(scenario, dcfg), self.lens, TRACKER_KINDS)
         self.pipeline = self.core.pipeline
         self.sched_config = scheduler_config(session, self.lens, dcfg, scenario.scheduler)
         self.scheduler = Scheduler(self.sched_config)
@@ -198,6 +201,7 @@ class _Runner:
             settle_s=scenario.settle_s,
             t_start=T_FIRST_FRAME_S,
             best=self.pipeline.config.best,
+            track3d=Track3DScore(scenario.settle_s),
         )
         self.n_frames = round(duration * session.fps)
         self.truth: dict[int, float] = {}
@@ -311,6 +315,8 @@ class _Runner:
         step = self.core.step(frame, tag)
         res.core_cpu_s.append(time.thread_time() - c0)
         self._score(step.output, frame, tag, truth)
+        if step.tracks and res.track3d is not None:
+            res.track3d.add(frame.t - res.t_start, truth_3d(truth), step.tracks)
         step.feedback.apply(self.scheduler)
         if self.on_step is not None:
             self.on_step(step)

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from hil.results import FloatArray, RunResult
+from hil.track3d import pooled_block
 
 logger = logging.getLogger(__name__)
 
@@ -140,6 +141,7 @@ def build_report(
         "per_case": _per_case(results),
         "diagnostics": diagnostics(results),
         "pan_tilt": pan_tilt_diagnostics(results),
+        "tracking_3d": tracking_3d(results),
         "notes": sorted({n for r in results for n in r.notes}),
     }
     report["goals"] = evaluate_goals(report, thresholds or {})
@@ -187,6 +189,18 @@ def diagnostics(results: Sequence[RunResult]) -> dict[str, Any]:
         if n or any(v is not None for k, v in row.items() if k.endswith("_m")):
             rows[key] = row
     return {"by_true_depth": rows}
+
+
+def tracking_3d(results: Sequence[RunResult]) -> dict[str, Any] | None:
+    """The ``tracking_3d`` block: each 3D tracker against the 3D truth, sessions pooled.
+
+    Per filter (mmae, imm, cv): 3D position/velocity/acceleration RMS and the angular speed's
+    bias and RMS after settling (hil/track3d.py). None when no session scored the trackers (the
+    real-time and hardware runners do not yet).
+    """
+    scores = [r.track3d for r in results if r.track3d is not None]
+    block = pooled_block(scores) if scores else {}
+    return block or None
 
 
 def pan_tilt_diagnostics(results: Sequence[RunResult]) -> dict[str, Any] | None:
@@ -340,6 +354,21 @@ def format_table(report: dict[str, Any]) -> str:
                 _num(pt["centre_err_px_p95"], "{:.1f}"),
                 _num(pt["reversals_per_s"], "{:.1f}"),
                 _num(pt["commands_per_s"], "{:.1f}"),
+            )
+        )
+    for name, b in (report.get("tracking_3d") or {}).items():
+        if b is None:
+            continue
+        w = b["angular_speed"]
+        lines.append(
+            "3D {:<4} position {} mm rms, velocity {} mm/s, acceleration {} mm/s²; "
+            "ω bias {} rms {} rad/s".format(
+                name,
+                _num(b["position_rms_m"] * 1e3, "{:.1f}"),
+                _num(b["velocity_rms_m_s"] * 1e3, "{:.1f}"),
+                _num(b["acceleration_rms_m_s2"] * 1e3, "{:.0f}"),
+                _num(w["bias_rad_s"], "{:+.4f}"),
+                _num(w["rms_rad_s"], "{:.4f}"),
             )
         )
     cpu = report["cpu"]
@@ -506,6 +535,11 @@ def _plot_session(plt: Any, res: RunResult, out_dir: Path, stem: str) -> list[Pa
             ax.axis("off")
         axes.flat[0].legend(fontsize=6)
         save(fig, "parabolas")
+    if res.track3d is not None:
+        title = f"{res.scenario} {res.case}: 3D tracker model probabilities"
+        plot = res.track3d.plot(out_dir / f"{stem}-model-probabilities.png", title)
+        if plot is not None:
+            paths.append(plot)
     return paths
 
 

@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from hil.track3d import Track3DScore
+
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -87,6 +89,7 @@ class RunResult:
     wall_s: float = 0.0
     notes: list[str] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
+    track3d: Track3DScore | None = None  # the 3D trackers against the 3D truth (fast mode)
 
     def series(self, name: str) -> Series:
         """The estimate series ``name``, created on first use."""

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from dffd.core.tracking3d import Track3DEstimate
+from drivers.sim.source import FrameTruth
 
 Vec3 = tuple[float, float, float]
 
@@ -31,6 +32,16 @@ class Truth3D:
     angular_speed_rad_s: float
 
 
+def truth_3d(truth: FrameTruth) -> Truth3D:
+    """The 3D truth of one rendered frame."""
+    return Truth3D(
+        truth.position_world_m,
+        truth.velocity_world_mps,
+        truth.acceleration_world_mps2,
+        truth.angular_speed_rad_s,
+    )
+
+
 @dataclass(slots=True)
 class _Series:
     t: list[float] = field(default_factory=list)
@@ -38,6 +49,7 @@ class _Series:
     vel: list[Vec3] = field(default_factory=list)
     acc: list[Vec3] = field(default_factory=list)
     omega: list[float] = field(default_factory=list)
+    omega_true: list[float] = field(default_factory=list)
     probabilities: list[dict[str, float]] = field(default_factory=list)
 
 
@@ -57,11 +69,13 @@ class Track3DScore:
             s.vel.append(_sub(est.velocity_m_s, truth.velocity_m_s))
             s.acc.append(_sub(est.acceleration_m_s2, truth.acceleration_m_s2))
             s.omega.append(est.angular_speed_rad_s - truth.angular_speed_rad_s)
+            s.omega_true.append(truth.angular_speed_rad_s)
             s.probabilities.append(dict(est.model_probabilities))
 
     def block(self) -> dict[str, Any]:
         """``{filter: {n, position_rms_m, velocity_rms_m_s, acceleration_rms_m_s2,
-        angular_speed: {bias_rad_s, rms_rad_s}}}`` over the steady state (None: no frames)."""
+        angular_speed: {bias_rad_s, rms_rad_s, truth_mean_rad_s}}}`` over the steady state
+        (None: no frames)."""
         out: dict[str, Any] = {}
         for name, s in self._series.items():
             sel = np.asarray(s.t) >= self.settle_s
@@ -78,6 +92,7 @@ class Track3DScore:
                 "angular_speed": {
                     "bias_rad_s": float(np.mean(omega)),
                     "rms_rad_s": float(math.sqrt(float(np.mean(omega**2)))),
+                    "truth_mean_rad_s": float(np.mean(np.asarray(s.omega_true)[sel])),
                 },
             }
         return out
@@ -124,6 +139,7 @@ def pooled_block(scores: Sequence[Track3DScore]) -> dict[str, Any]:
             dst.vel += [s.vel[i] for i in keep]
             dst.acc += [s.acc[i] for i in keep]
             dst.omega += [s.omega[i] for i in keep]
+            dst.omega_true += [s.omega_true[i] for i in keep]
             dst.probabilities += [s.probabilities[i] for i in keep]
     return pooled.block()
 

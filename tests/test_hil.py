@@ -133,6 +133,29 @@ def test_rates_latency_cpu_and_goals_present(short_run: tuple[Path, dict]) -> No
     assert any(p.endswith("-parabolas.png") for p in pngs)
 
 
+def test_report_scores_every_3d_tracker_against_the_3d_truth(
+    short_run: tuple[Path, dict],
+) -> None:
+    out, report = short_run
+    block = report["tracking_3d"]
+    assert set(block) == {"mmae", "imm", "cv"}
+    for name, b in block.items():
+        assert b["n"] > 10, name
+        # A disc at rest 2 m away: the 3D position is as good as the fused depth (cm).
+        assert 0 < b["position_rms_m"] < 0.1, name
+        assert math.isfinite(b["velocity_rms_m_s"]), name
+        assert math.isfinite(b["acceleration_rms_m_s2"]), name
+        w = b["angular_speed"]
+        assert w["truth_mean_rad_s"] == 0.0
+        assert abs(w["bias_rad_s"]) <= w["rms_rad_s"] < 1.0, name
+    assert block["cv"]["angular_speed"] == {
+        "bias_rad_s": 0.0,
+        "rms_rad_s": 0.0,
+        "truth_mean_rad_s": 0.0,
+    }
+    assert (out / "short-static-model-probabilities.png").stat().st_size > 1000
+
+
 def test_record_writes_a_replayable_recording(short_run: tuple[Path, dict]) -> None:
     from dffd.recording import RecordingReader
 

@@ -49,6 +49,7 @@ def test_block_is_steady_state_rms_and_bias_per_filter(tmp_path: Path) -> None:
     assert mm["angular_speed"] == {
         "bias_rad_s": pytest.approx(0.004),
         "rms_rad_s": pytest.approx(0.004),
+        "truth_mean_rad_s": pytest.approx(TRUTH.angular_speed_rad_s),
     }
     assert block["cv"]["position_rms_m"] == pytest.approx(0.06)
     assert block["cv"]["angular_speed"]["bias_rad_s"] == pytest.approx(-0.05)

@@ -121,6 +121,10 @@ def test_the_daemon_estimator_path_matches_the_bench(
         assert step.feedback == bench_step.feedback
         assert step.output.state == bench_step.output.state
         assert step.output.measurement == bench_step.output.measurement
+        # The daemon runs the published 3D tracker only; the bench runs every kind on the same
+        # frames, and the published one agrees.
+        assert step.track == bench_step.track
+        assert set(step.tracks) <= {"mmae"}
         d_est, b_est = step.output.estimate, bench_step.output.estimate
         assert (d_est is None) == (b_est is None)
         if d_est is not None and b_est is not None:
@@ -131,6 +135,7 @@ def test_the_daemon_estimator_path_matches_the_bench(
     roles = {tag.role for _, tag in recorded.frames}
     assert roles == {"track", "burst", "transit"}
     assert any(s.output.measurement is not None for s in recorded.steps)
+    assert any(set(s.tracks) == {"mmae", "imm", "cv"} for s in recorded.steps)
 
 
 def test_replay_with_the_service_config_reproduces_the_bench(
