@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from dffd.core.pipeline import PipelineConfig
 from dffd.scheduler import SchedulerConfig, pixel_offset_to_deg
 from dffd.step import SERVICE_TRACKERS, CoreStep
+from drivers.visca.camera import profile_for
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -68,14 +69,16 @@ def scheduler_config(
     frame_size: tuple[int, int],
     baudrate: int | None = None,
 ) -> SchedulerConfig:
-    """The scheduler configuration from ``[scheduler]``/``[capture]``/``[camera]`` and the facts
-    of the running camera (its frame rate, exposure, focus speed, lens and frame size).
+    """The scheduler configuration from ``[scheduler]``/``[capture]``/``[camera]`` (the pan/tilt
+    speed tables from the profile of ``[camera] model``) and the facts of the running camera (its
+    frame rate, exposure, focus speed, lens and frame size).
 
     ``baudrate`` defaults to ``[camera] baudrate``.
     """
     sc = settings.scheduler
     sigma_policy = sc.burst_policy == "sigma"
     exposure = None if exposure_s is None else min(exposure_s, 1.0 / fps)
+    profile = profile_for(settings.camera.model)
     return SchedulerConfig(
         fps=fps,
         exposure_s=exposure,
@@ -94,6 +97,9 @@ def scheduler_config(
         pixel_pitch_mm=pixel_pitch_mm,
         frame_size=frame_size,
         pan_tilt_mode=sc.pan_tilt_mode,
+        # The speed tables of the [camera] model, from the driver's profile.
+        pan_speeds_deg_s=profile.pan_speeds_deg_s,
+        tilt_speeds_deg_s=profile.tilt_speeds_deg_s,
         pan_tilt_gain_per_s=sc.pan_tilt_kp_per_s,
         pan_tilt_feedforward=sc.pan_tilt_feedforward,
         pan_tilt_lost_s=sc.pan_tilt_lost_s,

@@ -36,6 +36,7 @@ from dffd.scheduler import (
     speed_of_index,
     visca_speed_index,
 )
+from drivers.visca.camera import EVI_D100
 
 # Every field the service config sets is given (SchedulerConfig has no defaults for them):
 # classic bursts, no pan/tilt, a 4 mm lens, 9600 baud.
@@ -53,6 +54,8 @@ BASE = SchedulerConfig(
     pixel_pitch_mm=0.006,
     frame_size=(640, 480),
     pan_tilt_mode="off",
+    pan_speeds_deg_s=EVI_D100.pan_speeds_deg_s,
+    tilt_speeds_deg_s=EVI_D100.tilt_speeds_deg_s,
     pan_tilt_gain_per_s=1.5,
     pan_tilt_feedforward=True,
     pan_tilt_lost_s=0.5,
@@ -64,6 +67,9 @@ BASE = SchedulerConfig(
     initial_focus_counts=5000,
 )
 PLAN = (4700, 5000, 5300)
+# The reference camera's pan and tilt speed tables (codes 01…18 and 01…14).
+PAN = EVI_D100.pan_speeds_deg_s
+TILT = EVI_D100.tilt_speeds_deg_s
 
 
 # -- a model camera, independent of the scheduler ----------------------------------------------
@@ -256,15 +262,15 @@ def test_rate_limit_by_hand() -> None:
 
 
 def test_visca_speed_index_is_nearest_and_never_zero_for_motion() -> None:
-    assert visca_speed_index(0.0, 0x18) == 0
-    assert visca_speed_index(0.01, 0x18) == 1
-    assert visca_speed_index(-0.01, 0x18) == -1
-    assert visca_speed_index(14.0, 0x18) == 10
-    assert visca_speed_index(-52.0, 0x18) == -16
-    assert visca_speed_index(1000.0, 0x18) == 0x18
-    assert visca_speed_index(1000.0, 0x14) == 0x14
-    assert speed_of_index(-10) == -14.0
-    assert speed_of_index(0) == 0.0
+    assert visca_speed_index(0.0, PAN) == 0
+    assert visca_speed_index(0.01, PAN) == 1
+    assert visca_speed_index(-0.01, PAN) == -1
+    assert visca_speed_index(14.0, PAN) == 10
+    assert visca_speed_index(-52.0, PAN) == -16
+    assert visca_speed_index(1000.0, PAN) == 0x18
+    assert visca_speed_index(1000.0, TILT) == 0x14
+    assert speed_of_index(-10, PAN) == -14.0
+    assert speed_of_index(0, PAN) == 0.0
 
 
 def test_pixel_offset_to_angle() -> None:
@@ -516,7 +522,7 @@ def test_target_right_and_up_drives_pan_right_and_tilt_up() -> None:
     assert isinstance(first, PanTiltDrive)
     assert first.pan_speed > 0
     assert first.tilt_speed > 0
-    assert first.pan_rate_deg_s == speed_of_index(first.pan_speed)
+    assert first.pan_rate_deg_s == speed_of_index(first.pan_speed, PAN)
 
 
 def test_centred_target_gives_no_motion_and_lost_target_is_searched_for() -> None:
@@ -869,7 +875,7 @@ def test_head_follows_without_hunting_and_holds_speed_through_measured_frames(
     # Measured exposures all see one speed, the table speed nearest the target's (0 below 1°/s):
     # no head-induced smear beyond |that speed − ω| × exposure, the same on every burst frame.
     quiet = set(h.measured_rates(after=2.0))
-    nearest = speed_of_index(nearest_speed_index(omega, 0x18))
+    nearest = speed_of_index(nearest_speed_index(omega, PAN), PAN)
     assert quiet == {nearest}
     # Centred within the band plus the drift of one rolling cycle, and no hunting: the head
     # never turns against the target.

@@ -7,6 +7,7 @@ import dataclasses
 
 from dffd.config import DffdConfig
 from dffd.wiring import pipeline_config, scheduler_config
+from drivers.visca.camera import EVI_D70, EVI_D100
 from hil.lockstep import pipeline_config as bench_pipeline_config
 from hil.scenario import load_scenario
 
@@ -96,3 +97,16 @@ def test_scheduler_config_follows_the_scheduler_section() -> None:
     sigma = scheduler_config(cfg, **facts)  # type: ignore[arg-type]
     assert (sigma.burst_every_frames, sigma.sigma_trigger_m) == (90, 0.05)
     assert sigma.pan_tilt_mode == "absolute"
+
+
+def test_scheduler_speed_tables_come_from_the_camera_model_profile() -> None:
+    for model, profile in (("evi-d100", EVI_D100), ("evi-d70", EVI_D70)):
+        cfg = DffdConfig.model_validate({"camera": {"model": model}})
+        sched = scheduler_config(
+            cfg, fps=30.0, exposure_s=None, focus_speed_counts_per_s=20000.0,
+            focal_length_mm=4.0, pixel_pitch_mm=0.006, frame_size=(640, 480),
+        )  # fmt: skip
+        assert sched.pan_speeds_deg_s == profile.pan_speeds_deg_s
+        assert sched.tilt_speeds_deg_s == profile.tilt_speeds_deg_s
+    # The two models' tables differ, so a scheduler on the D70 commands the D70's rates.
+    assert EVI_D70.pan_speeds_deg_s != EVI_D100.pan_speeds_deg_s

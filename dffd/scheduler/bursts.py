@@ -15,9 +15,9 @@ so they are the tracking frames), then one exposure at the next end, alternating
 tagged ``burst`` with ``(id, 2)`` alone: it closes a burst with the previous end and the middle
 frame between them (the core assembles it), so a depth comes every two half-bracket moves instead
 of four plus the tracking frames. An end's counts are taken from the latest plan when its move is
-issued (that plan carries the burst the core fitted at the frame before). On the reference
-simulator this gives 2.2 Hz against 0.86 Hz for ``classic`` and 0.33 Hz for a full sweep
-(docs/estimation.md §6). ``classic``: three settings per burst, mid → end → end → mid.
+issued (that plan carries the burst the core fitted at the frame before). The depth rates of
+both modes are measured in docs/estimation.md §6. ``classic``: three settings per burst,
+mid → end → end → mid.
 
 Burst policy: one burst after ``burst_every_frames`` tracking exposures at the tracking focus, or
 earlier when the reported σ of ẑ exceeds ``sigma_trigger_m``. Slot order minimises motor travel

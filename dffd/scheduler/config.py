@@ -3,13 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
+from dffd.literals import BurstMode, PanTiltMode
 from dffd.scheduler.geometry import pixel_offset_to_deg
 from dffd.scheduler.wire import PAN_TILT_DRIVE_BYTES, link_time_s
-
-PanTiltMode = Literal["drive", "absolute", "off"]
-BurstMode = Literal["rolling", "classic"]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -49,6 +46,11 @@ class SchedulerConfig:
     focus_inquiry_interval_s: float = 0.05
     # Pan/tilt.
     pan_tilt_mode: PanTiltMode
+    # The camera model's speed tables (deg/s of speed codes 01, 02, …), from the driver's profile
+    # (``CameraProfile.pan_speeds_deg_s``/``tilt_speeds_deg_s``): the commanded rates and the
+    # head model's dead reckoning are in these.
+    pan_speeds_deg_s: tuple[float, ...]
+    tilt_speeds_deg_s: tuple[float, ...]
     focal_length_mm: float
     pixel_pitch_mm: float
     frame_size: tuple[int, int]
@@ -103,6 +105,10 @@ class SchedulerConfig:
             raise ValueError("pan_tilt_lost_s and pan_tilt_search_s must be >= 0")
         if self.acquire_stable_frames < 0:
             raise ValueError("acquire_stable_frames must be >= 0")
+        for name in ("pan_speeds_deg_s", "tilt_speeds_deg_s"):
+            table = getattr(self, name)
+            if not table or any(v <= 0 for v in table):
+                raise ValueError(f"{name} must list positive speeds (got {table!r})")
 
     @property
     def period_s(self) -> float:

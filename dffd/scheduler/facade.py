@@ -252,8 +252,8 @@ class Scheduler:
             plan = None  # acquire first: no bursts until the contour has been stable a while
         elif plan is None and centroid_px is not None and t in self._transit_ts:
             # The core plans from a known focus: a transit frame of a tracked target has no plan
-            # of its own, which must not cancel the last one (measured: the rolling bracket lost
-            # one frame per pass waiting for the next tracking frame's plan).
+            # of its own, which must not cancel the last one (else the rolling bracket waits for
+            # the next tracking frame's plan; docs/estimation.md §6.1).
             plan = self._plan
         if plan is not None:
             self._plan = tuple(sorted(int(c) for c in plan))
@@ -376,8 +376,8 @@ class Scheduler:
             if burst.rolling and self._plan is not None:
                 # The end's counts are fixed only now, from the latest plan: the claimed frame is
                 # a tracking frame, and the plan of the frame before it (delivered by now) carries
-                # the burst the core fitted there (committing at the claim used a plan one burst
-                # older: measured raw z_m std 30 → 45 mm on paper-circle).
+                # the burst the core fitted there (committing at the claim would use a plan one
+                # burst older; docs/estimation.md §6.1).
                 burst.order = (self._plan[-1] if burst.side > 0 else self._plan[0],)
             return self._issue_move(burst.order[0], now, "burst_move")
         if self._phase == "burst_dwell":

@@ -29,9 +29,6 @@ from dffd.scheduler.actions import (
 from dffd.scheduler.clock import TIME_EPS_S
 from dffd.scheduler.config import SchedulerConfig
 from dffd.scheduler.geometry import (
-    PAN_MAX_SPEED_INDEX,
-    TILT_MAX_SPEED_INDEX,
-    VISCA_SPEEDS_DEG_S,
     nearest_speed_index,
     pixel_offset_to_deg,
     speed_of_index,
@@ -102,9 +99,10 @@ class PanTiltHead:
             seg = self._prev_seg  # the last command has not reached the motors yet
         dt = max(0.0, t - seg.t0)
         if seg.goal is not None:
-            idx = self.config.absolute_speed_index
-            speed_p = speed_of_index(idx)
-            speed_t = speed_of_index(min(idx, TILT_MAX_SPEED_INDEX))
+            cfg = self.config
+            idx_p, idx_t = self._absolute_speeds()
+            speed_p = speed_of_index(idx_p, cfg.pan_speeds_deg_s)
+            speed_t = speed_of_index(idx_t, cfg.tilt_speeds_deg_s)
             return (
                 _approach(seg.pan0, seg.goal[0], speed_p, dt),
                 _approach(seg.tilt0, seg.goal[1], speed_t, dt),
@@ -287,8 +285,7 @@ class PanTiltHead:
             seen = self._target
             self._return_pending = False
             self._forget_target()
-            idx = cfg.absolute_speed_index
-            return PanTiltAbsolute(seen[0], seen[1], idx, min(idx, TILT_MAX_SPEED_INDEX)), idle
+            return PanTiltAbsolute(seen[0], seen[1], *self._absolute_speeds()), idle
         if self._target is None:
             return None, idle
         pan_now, tilt_now = self.at(now)
@@ -314,7 +311,12 @@ class PanTiltHead:
             return PanTiltStop(), due
         if isinstance(last, PanTiltDrive) and (last.pan_speed, last.tilt_speed) == (ip, it):
             return None, due
-        return PanTiltDrive(ip, it, speed_of_index(ip), speed_of_index(it)), due
+        return PanTiltDrive(
+            ip,
+            it,
+            speed_of_index(ip, cfg.pan_speeds_deg_s),
+            speed_of_index(it, cfg.tilt_speeds_deg_s),
+        ), due
 
     def _axis(  # noqa: PLR0917 - private, per-axis step of _decide
         self,
@@ -327,14 +329,18 @@ class PanTiltHead:
     ) -> tuple[int, float]:
         """Signed speed index for one axis and when its correction (if any) ends."""
         cfg = self.config
-        max_idx = PAN_MAX_SPEED_INDEX if axis == 0 else TILT_MAX_SPEED_INDEX
+        table = cfg.pan_speeds_deg_s if axis == 0 else cfg.tilt_speeds_deg_s
+        max_idx = len(table)
         q = self._quiet_code[axis]
-        best = nearest_speed_index(omega, max_idx)
-        hysteresis = QUIET_CODE_HYSTERESIS * max(abs(omega), VISCA_SPEEDS_DEG_S[0] / 2.0)
-        if abs(speed_of_index(q) - omega) > abs(speed_of_index(best) - omega) + hysteresis:
+        best = nearest_speed_index(omega, table)
+        hysteresis = QUIET_CODE_HYSTERESIS * max(abs(omega), table[0] / 2.0)
+        if (
+            abs(speed_of_index(q, table) - omega)
+            > abs(speed_of_index(best, table) - omega) + hysteresis
+        ):
             q = best
         self._quiet_code[axis] = q
-        sq = speed_of_index(q)
+        sq = speed_of_index(q, table)
         emergency = abs(error) > cfg.pan_tilt_emergency_deg
         if quiet_at is None:
             tau = cfg.pan_tilt_horizon_s  # no measured exposures ahead: a rolling horizon
@@ -354,11 +360,11 @@ class PanTiltHead:
             return q, math.inf
         cap = max(cfg.pan_tilt_max_correction_deg_s, cfg.pan_tilt_gain_per_s * abs(error))
         u = min(max(m / tau, -cap), cap)
-        c = nearest_speed_index(sq + u, max_idx)
+        c = nearest_speed_index(sq + u, table)
         direction = 1 if m > 0 else -1
-        if (speed_of_index(c) - sq) * direction <= 0:
+        if (speed_of_index(c, table) - sq) * direction <= 0:
             c = step_index(q, direction, max_idx)  # at least one code towards the error
-        relative = speed_of_index(c) - sq
+        relative = speed_of_index(c, table) - sq
         if relative == 0.0:
             self._correcting[axis] = False
             return q, math.inf  # at the end of the table: nothing faster to run
@@ -385,13 +391,17 @@ class PanTiltHead:
             and abs(last.tilt_deg - self._target[1]) <= dead
         ):
             return None
-        idx = cfg.absolute_speed_index
         return PanTiltAbsolute(
             self._target[0] + ff[0] * ahead,
             self._target[1] + ff[1] * ahead,
-            idx,
-            min(idx, TILT_MAX_SPEED_INDEX),
+            *self._absolute_speeds(),
         )
+
+    def _absolute_speeds(self) -> tuple[int, int]:
+        """Pan and tilt speed codes of absolute moves: the configured code, within each table."""
+        cfg = self.config
+        idx = cfg.absolute_speed_index
+        return min(idx, len(cfg.pan_speeds_deg_s)), min(idx, len(cfg.tilt_speeds_deg_s))
 
     def _apply(self, cmd: PanTiltDrive | PanTiltAbsolute | PanTiltStop, now: float) -> None:
         # The motors change when the camera takes the command: after its bytes and, on average,
