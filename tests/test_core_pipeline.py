@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from dffd.core.pipeline import Measurement, Pipeline, PipelineConfig
+from dffd.config import DffdConfig
+from dffd.core.pipeline import Measurement, Pipeline
 from dffd.core.synthetic import DiscScene, closed_loop, render_scene, synthetic_lens
 from dffd.core.types import FrameTag
 from dffd.literals import FocusMeasure
+from dffd.wiring import pipeline_config
 from drivers.frames import Frame
+
+# The service's estimation settings (their one set of defaults lives in the config).
+SERVICE = pipeline_config(DffdConfig())
 
 LENS = synthetic_lens()
 SCENE = DiscScene()
@@ -31,8 +37,8 @@ def paper_run() -> dict[str, np.ndarray]:
     # closed loop has no focus travel, a burst follows the plan at once: no plan lead and no
     # measurement time offset (the reference simulator's bracket lean, docs/estimation.md §7)
     pipe = Pipeline(
-        PipelineConfig(
-            known_size_m=R, lpv_omega=0.6, plan_lead_s=0.0, measurement_time_offset_s=0.0
+        replace(
+            SERVICE, known_size_m=R, lpv_omega=0.6, plan_lead_s=0.0, measurement_time_offset_s=0.0
         ),
         LENS,
     )
@@ -91,7 +97,7 @@ def _frame(index: int, t: float, z: float, counts: int, x: float = 0.0) -> tuple
 
 
 def test_state_machine_acquire_release_lost_and_reacquire() -> None:
-    pipe = Pipeline(PipelineConfig(), LENS)
+    pipe = Pipeline(SERVICE, LENS)
     c = LENS.counts_for_depth(4.0)
     out = pipe.process(*_frame(0, 0.0, 4.0, c))
     assert out.state == "tracking"
@@ -119,7 +125,7 @@ def test_state_machine_acquire_release_lost_and_reacquire() -> None:
 
 
 def test_incomplete_burst_is_rejected_and_plan_uses_the_prediction() -> None:
-    pipe = Pipeline(PipelineConfig(), LENS)
+    pipe = Pipeline(SERVICE, LENS)
     c = LENS.counts_for_depth(5.0)
     assert pipe.predicted_depth() is None
     pipe.process(*_frame(0, 0.0, 5.0, c))
@@ -135,7 +141,7 @@ def test_incomplete_burst_is_rejected_and_plan_uses_the_prediction() -> None:
 
 def test_deterministic() -> None:
     def run() -> list[float | None]:
-        pipe = Pipeline(PipelineConfig(), LENS)
+        pipe = Pipeline(SERVICE, LENS)
         zs = []
         for st in closed_loop(pipe, SCENE, LENS, circle, duration_s=3.0, seed=1):
             e = pipe.process(st.frame, st.tag).estimate
@@ -152,7 +158,7 @@ def test_rolling_bursts_close_with_the_previous_end_and_the_middle_frame(
     """Triangle lo, mid, hi, mid, lo, …: every end (tagged slot 2 alone) closes a burst with the
     previous end and the tracking frame between; the fit is accurate and motion-compensated
     with either focus measure."""
-    pipe = Pipeline(PipelineConfig(plan_lead_s=0.0, focus_measure=measure), LENS)
+    pipe = Pipeline(replace(SERVICE, plan_lead_s=0.0, focus_measure=measure), LENS)
     rng = np.random.default_rng(3)
     dt, index, bid = 1.0 / 30, 0, 0
     z0, zdot = 5.0, -0.25  # approaching at 0.25 m/s
@@ -199,7 +205,7 @@ def test_rolling_bursts_close_with_the_previous_end_and_the_middle_frame(
 
 
 def test_rolling_end_after_a_same_side_end_opens_a_new_sequence() -> None:
-    pipe = Pipeline(PipelineConfig(), LENS)
+    pipe = Pipeline(SERVICE, LENS)
     c = LENS.counts_for_depth(5.0)
     pipe.process(*_frame(0, 0.0, 5.0, c))
     frame, _ = _frame(1, 0.2, 5.0, c + 2000)

@@ -9,9 +9,11 @@ from pathlib import Path
 import pytest
 
 from dffd.cli import main
-from dffd.core.pipeline import Pipeline, PipelineConfig
+from dffd.config import DffdConfig
+from dffd.core.pipeline import Pipeline
 from dffd.core.synthetic import DiscScene, closed_loop, synthetic_lens
 from dffd.recording import RecordingWriter
+from dffd.wiring import pipeline_config
 
 LENS = synthetic_lens()
 
@@ -23,7 +25,7 @@ def approach(t: float) -> tuple[float, float, float]:
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("rec") / "run"
-    pipe = Pipeline(PipelineConfig(), LENS)  # the closed loop needs a planner
+    pipe = Pipeline(pipeline_config(DffdConfig()), LENS)  # the closed loop needs a planner
     with RecordingWriter(path, 30, (640, 480), LENS.to_meta()) as rec:
         for st in closed_loop(
             pipe, DiscScene(), LENS, approach, duration_s=8.0, seed=3, transit=True

@@ -175,12 +175,14 @@ def test_dffd_replay_and_calibrate_run_installed(installed: Installed, tmp_path:
 
 def _tiny_recording(path: Path) -> Path:
     """A 2 s synthetic recording (the format is the contract; written by the tree's code)."""
-    from dffd.core.pipeline import Pipeline, PipelineConfig
+    from dffd.config import DffdConfig
+    from dffd.core.pipeline import Pipeline
     from dffd.core.synthetic import DiscScene, closed_loop, synthetic_lens
     from dffd.recording import RecordingWriter
+    from dffd.wiring import pipeline_config
 
     lens = synthetic_lens()
-    pipe = Pipeline(PipelineConfig(), lens)
+    pipe = Pipeline(pipeline_config(DffdConfig()), lens)
     with RecordingWriter(path, 30, (640, 480), lens.to_meta()) as rec:
         for st in closed_loop(
             pipe, DiscScene(), lens, lambda t: (0.0, 0.0, 5.0), duration_s=2.0, seed=1

@@ -14,12 +14,14 @@ import threading
 import time
 from collections import deque
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 from pydantic import ValidationError
 
+from dffd.config import DffdConfig
 from dffd.core.pipeline import Measurement as CoreMeasurement
-from dffd.core.pipeline import Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.pipeline import Pipeline, PipelineOutput
 from dffd.core.synthetic import DiscScene, StreamStep, closed_loop, synthetic_lens
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
@@ -32,6 +34,7 @@ from dffd.web.interface import (
     overlay_from_output,
 )
 from dffd.web.metrics import Metrics
+from dffd.wiring import pipeline_config
 
 FPS = 20.0  # synthetic frame rate: enough motion for the video, light on a shared 2-core box
 WIDTH, HEIGHT = 320, 240
@@ -50,7 +53,7 @@ class SyntheticDaemon:
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
         self.lens = synthetic_lens()
-        self.config = PipelineConfig(search_px=8)
+        self.config = replace(pipeline_config(DffdConfig()), search_px=8)
         self.pipeline = Pipeline(self.config, self.lens)
         self.scene = DiscScene(width=WIDTH, height=HEIGHT)
         self.feed = DashboardFeed()

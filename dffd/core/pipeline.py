@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import KW_ONLY, dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -69,8 +69,6 @@ class PipelineConfig:
 
     n_normals: int = 64  # Nl of (2)
     search_px: int = 12  # half-length of the normal lines
-    best: EstimatorName = "lpv"
-    known_size_m: float | None = None  # enables CF1
     settle_s: float = 5.0  # settling time: steady-state statistics start after it
     burst_size: int = 3  # frames of a complete burst
     # Rolling bursts: the previous end must be at most this old (s) to close a burst with.
@@ -79,9 +77,6 @@ class PipelineConfig:
     # (chief ray; lenses whose image size "breathes" with focus)
     magnification: Literal["thin_lens", "pinhole"] = "pinhole"
     transport_measurements: bool = True
-    # Focus measure of a burst frame (dffd.core.focus.frame_cost): "peak_gradient" is the
-    # paper's cost (2); "edge_variance" holds for any PSF but is noisier (docs/estimation.md §8).
-    focus_measure: FocusMeasure = "peak_gradient"
     # Burst motion compensation: the target's sharp setting moves during a burst (~0.6 s; at
     # 0.25 m/s and 8 m that is ~2 µm of v against ~0.6 µm of fit noise). The size ratio gives
     # each frame's depth relative to the burst mid-time, z_i = z s(t_mid)/s(t_i), so every focus
@@ -90,9 +85,6 @@ class PipelineConfig:
     plan_lead_s: float = 0.3  # plan → burst mid-time (slots at ~0, 0.2, 0.6 s at 30 fps)
     # CF1 / CF2 (Lemma 1 from the noise densities)
     cf1_k: float = 1.0  # rad/s
-    cf2_sigma_psi: float = 0.04  # m/s/√Hz
-    cf2_sigma_beta: float = 0.015  # m/s²/√Hz
-    cf2_sigma_z: float = 0.05  # m·√s
     cf2_nominal_size_m: float | None = None  # None: mean of the first size measurements
     cf2_size_bursts: int = 10  # ... over this many accepted bursts, then frozen (paper: fixed R)
     # Start-up hand-over: the fixed-gain filters (CF1, CF2, LPV) are seeded from the KF (the LPV
@@ -115,8 +107,6 @@ class PipelineConfig:
     # reference simulator: ω 0.6 → 0.15 takes LPV from 0.88x to 0.45x of raw z_m's std)
     lpv_omega: float = 0.15
     lpv_zeta: float = 0.8
-    rho_min: float = -2.0  # 1/s: ρ = ṙ/r = −ż/z; ±2/s covers 4 m/s at 2 m
-    rho_max: float = 2.0
     kf_noise: KFNoise = field(default_factory=KFNoise)
     differentiator_omega: float = 12.0  # rad/s, bandwidth of ṙ and of the velocity
     # ψ_m for CF1/CF2: "step" = exact size difference over each step (its noise telescopes when
@@ -129,6 +119,19 @@ class PipelineConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     fit: FitConfig = field(default_factory=FitConfig)
     plan: PlanConfig = field(default_factory=PlanConfig)
+    # Set from the service config ([estimators], [target]) by dffd.wiring.pipeline_config, which
+    # is where their defaults live: no second default here that a runner could drift onto.
+    _: KW_ONLY
+    best: EstimatorName
+    known_size_m: float | None  # enables CF1
+    cf2_sigma_psi: float  # m/s/√Hz (CF2, Lemma 1 from the noise densities)
+    cf2_sigma_beta: float  # m/s²/√Hz
+    cf2_sigma_z: float  # m·√s
+    rho_min: float  # 1/s: ρ = ṙ/r = −ż/z; ±2/s covers 4 m/s at 2 m
+    rho_max: float
+    # Focus measure of a burst frame (dffd.core.focus.frame_cost): "peak_gradient" is the
+    # paper's cost (2); "edge_variance" holds for any PSF but is noisier (docs/estimation.md §8).
+    focus_measure: FocusMeasure
 
 
 @dataclass(frozen=True, slots=True)
