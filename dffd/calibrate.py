@@ -1,4 +1,4 @@
-"""``dffd calibrate``: fit the focus counts ↔ v table, measure the capture latency (DESIGN §2, §4).
+"""``dffd calibrate``: fit the focus counts ↔ v table; the capture latency (design.md §3, §5).
 
 One procedure (:func:`calibrate`) runs against a :class:`Rig` — the simulated camera
 (``--sim``: :class:`SimRig`, lock-step virtual time) or the real camera (:class:`LabRig`: the
@@ -74,7 +74,7 @@ NOISE_FRAMES = 4  # frames at the settled focus that give the noise floor
 LATENCY_MAX_FRAMES = 20  # give up counting after this many frames
 # Frames beyond the latency to wait after a Completion before a frame surely exposed after it.
 SETTLE_EXTRA_FRAMES = 2
-# Camera initialisation (the D100 takes ~10 s from standby, DESIGN §5) and one focus move.
+# Camera initialisation (the D100 takes ~10 s from standby, docs/design.md §6) and one focus move.
 CAMERA_INIT_TIMEOUT_S = 30.0
 # A frame must arrive within this time from a V4L2 device (30 fps; a grabber may stall ~1 s).
 FRAME_TIMEOUT_S = 2.0
@@ -237,7 +237,7 @@ def lens_toml(lens: Lens, zoom_counts: int | None, latency_frames: int) -> str:
     )
     zoom = f"zoom_counts = {zoom_counts}\n" if zoom_counts is not None else ""
     return (
-        "# Focus calibration written by `dffd calibrate` (DESIGN §2).\n"
+        "# Focus calibration written by `dffd calibrate` (docs/design.md §3).\n"
         f"# Measured capture latency: {latency_frames} frame(s) -> [capture] latency_frames.\n"
         "[lens]\n"
         f'name = "{lens.name}"\n'

@@ -1,4 +1,4 @@
-"""Recordings (DESIGN §7): a directory of lossless PNG frames, their tags, and optional truth.
+"""Recordings (design.md §8): a directory of lossless PNG frames, their tags, and optional truth.
 
 ```
 RUN/meta.json    {"schema": 1, "fps": 30, "frame_size": [w, h], "lens": {...}}

@@ -131,7 +131,7 @@ def replay(
 
 
 def estimate_line(e: Estimate) -> dict[str, Any]:
-    """One EST.jsonl object (DESIGN §7 fields first, then the rest of the estimate)."""
+    """One EST.jsonl object (docs/design.md §8 fields first, then the rest of the estimate)."""
     return {
         "t_s": e.t,
         "depth_m": {k: e.depth_m.get(k) for k in ESTIMATORS},
@@ -189,7 +189,7 @@ def summarize(
     t_start: float,
     bursts: tuple[int, int],
 ) -> dict[str, Any]:
-    """The SUMMARY.json object of DESIGN §7 (``measured`` scored at each burst's mid-time)."""
+    """The SUMMARY.json object of design.md §8 (``measured`` scored at each burst's mid-time)."""
     estimators: dict[str, Any] = {}
     for name in ESTIMATORS:
         ts: list[float] = []

@@ -1,4 +1,4 @@
-"""Per-frame CPU of the estimation core vs two full-frame baselines (DESIGN §8, issue 4).
+"""Per-frame CPU of the estimation core vs two full-frame baselines (docs/design.md §10, issue 4).
 
 The frames come from the reference simulator in lock-step (``hil.lockstep.run_session``: the
 product's scheduler drives pan/tilt and focus, so the stream holds track, burst and transit
@@ -7,7 +7,7 @@ frames of a moving target, with pan/tilt re-centring jumps). A second, fresh
 each call is timed with the calling thread's CPU time (``time.thread_time_ns``), OpenCV
 single-threaded. On every tracking frame the two baselines run on the same frame:
 
-* **naive** — what DESIGN §8 names: a straightforward implementation without the neighbourhood
+* **naive** — what design.md §10 names: a straightforward implementation without the neighbourhood
   optimisation. Full-frame gradient magnitude in float64 NumPy (``np.gradient``), full-frame
   contour search (Otsu threshold + ``cv2.findContours``, the largest contour), 64 normals, the
   cost (2) from the per-normal maximum of the full-frame ``||∇I||²``. The speed-up goal (≥ 10×)
@@ -150,14 +150,14 @@ class _Bench:
                 "median": float(np.median(r)) if r.size else None,
                 "max": float(r.max()) if r.size else None,
             },
-            "core": core,  # role "track": the DESIGN §8 figure
+            "core": core,  # role "track": the docs/design.md §10 figure
             "core_by_role": {role: _stats(v) for role, v in self.core.items() if v},
             "core_all_frames": _stats(everything),
             "baseline_naive_full_frame": naive
             | {"what": "float64 np.gradient + Otsu/findContours + cost along 64 normals"},
             "baseline_tuned_full_frame": tuned
             | {"what": "OpenCV float32 GaussianBlur+Sobel + Otsu/findContours + cost"},
-            "speedup": speedup,  # vs the naive baseline (DESIGN §8)
+            "speedup": speedup,  # vs the naive baseline (docs/design.md §10)
             "speedup_vs_tuned": speedup_tuned,
             "targets": {"core_mean_ms_max": TARGET_MS, "speedup_min": TARGET_RATIO},
             "pass": core["mean_ms"] <= TARGET_MS and speedup >= TARGET_RATIO,
@@ -170,7 +170,7 @@ class _Bench:
 
 
 def naive_full_frame(image: npt.NDArray[np.uint8]) -> float | None:
-    """DESIGN §8's naive baseline: float64 full-frame gradient + contour search + cost."""
+    """docs/design.md §10's naive baseline: float64 full-frame gradient + contour search + cost."""
     gy, gx = np.gradient(image.astype(np.float64))
     mag = np.asarray(gx * gx + gy * gy, dtype=np.float64)
     return _contour_cost(image, mag)
@@ -238,7 +238,7 @@ def _print(res: dict[str, Any]) -> None:
         f"frames timed, target r {r['min']:.0f}-{r['max']:.0f} px (median {r['median']:.0f}); "
         "thread CPU time, OpenCV 1 thread"
     )
-    print(line("core, track frames (DESIGN §8 figure)", res["core"]))
+    print(line("core, track frames (docs/design.md §10 figure)", res["core"]))
     for role, s in res["core_by_role"].items():
         if role != "track":
             print(line(f"core, {role} frames", s))
@@ -247,7 +247,7 @@ def _print(res: dict[str, Any]) -> None:
     print(line("baseline TUNED full-frame (OpenCV f32 Sobel)", res["baseline_tuned_full_frame"]))
     verdict = "PASS" if res["pass"] else "FAIL"
     print(
-        f"speed-up vs NAIVE {res['speedup']:.1f}x (DESIGN §8 goal >= {TARGET_RATIO:g}x); "
+        f"speed-up vs NAIVE {res['speedup']:.1f}x (docs/design.md §10 goal >= {TARGET_RATIO:g}x); "
         f"vs TUNED {res['speedup_vs_tuned']:.1f}x (stronger reference, no goal); "
         f"core mean {res['core']['mean_ms']:.3f} ms (goal <= {TARGET_MS:g} ms) -> {verdict}"
     )

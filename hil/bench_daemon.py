@@ -1,4 +1,4 @@
-"""Benchmark of the real daemon (DESIGN §8): latency, depth-measurement rate, CPU and RSS.
+"""Benchmark of the real daemon (docs/design.md §10): latency, depth-measurement rate, CPU and RSS.
 
 Runs ``python -m dffd run`` as a subprocess against the simulated camera on a pty and a real
 mosquitto on a free loopback port (the embedded amqtt broker if mosquitto is not installed),

@@ -1,4 +1,4 @@
-"""``python -m hil bench``: the performance figures of DESIGN §8, each against its baseline.
+"""``python -m hil bench``: the performance figures of design.md §10, each against its baseline.
 
 Runs the component benchmarks other parts ship (each in its own process so timings do not
 interfere) and adds what only the bench can measure:
@@ -147,7 +147,7 @@ def _core_figures(core: dict[str, Any]) -> list[dict[str, Any]]:
             "core CPU per tracking frame",
             mean,
             "ms",
-            "≤ 2 ms (DESIGN §8)",
+            "≤ 2 ms (docs/design.md §10)",
             baseline="budget",
             baseline_value=2.0,
             ratio=mean / 2.0,
@@ -157,7 +157,7 @@ def _core_figures(core: dict[str, Any]) -> list[dict[str, Any]]:
             "core speed-up vs naive full-frame",
             speedup,
             "×",
-            "≥ 10× (DESIGN §8)",
+            "≥ 10× (docs/design.md §10)",
             baseline="naive full-frame gradient + contour + cost (ms)",
             baseline_value=naive,
             ratio=speedup,
@@ -248,7 +248,7 @@ def _lockstep_figures(quick: bool) -> dict[str, Any]:
             "depth measurements per second (lock-step, static 4 m)",
             res.depth_hz,
             "Hz",
-            "≥ 90% of the theoretical limit (DESIGN §8)",
+            "≥ 90% of the theoretical limit (docs/design.md §10)",
             baseline="scheduler limit (Hz)",
             baseline_value=limit,
             ratio=ratio,
@@ -311,7 +311,7 @@ def _daemon_figures(daemon: dict[str, Any], quick: bool) -> list[dict[str, Any]]
             f"exposure → MQTT latency p50 ({source})",
             p50,
             "ms",
-            "≤ 10 ms at 30 fps (DESIGN §8)",
+            "≤ 10 ms at 30 fps (docs/design.md §10)",
             baseline="goal",
             baseline_value=10.0,
             ratio=p50 / 10.0,
@@ -321,7 +321,7 @@ def _daemon_figures(daemon: dict[str, Any], quick: bool) -> list[dict[str, Any]]
             f"exposure → MQTT latency p99 ({source})",
             p99,
             "ms",
-            "≤ 30 ms at 30 fps (DESIGN §8)",
+            "≤ 30 ms at 30 fps (docs/design.md §10)",
             baseline="goal",
             baseline_value=30.0,
             ratio=p99 / 30.0,

@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, default=None, help="output directory (default hil/out/SCENARIO)"
     )
     run.add_argument("--fast", action="store_true", help="lock-step virtual time (no waiting)")
-    run.add_argument("--record", action="store_true", help="also write a recording (DESIGN §7)")
+    run.add_argument("--record", action="store_true", help="also write a recording (design.md §8)")
     run.add_argument(
         "--duration", type=float, default=None, help="override the per-case duration (s)"
     )
@@ -71,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser(
         "bench",
-        help="performance bench (DESIGN §8): CPU, replay, depth rate, latency, serial",
+        help="performance bench (docs/design.md §10): CPU, replay, depth rate, latency, serial",
     )
     bench.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
     bench.add_argument("--quick", action="store_true", help="shorter runs (smoke test)")

@@ -1,4 +1,4 @@
-"""``report.json`` and the PNG plots of a bench run (DESIGN §7 summary shape, §9 report keys).
+"""``report.json`` and the PNG plots of a bench run (design.md §8 summary shape, §9 report keys).
 
 The per-estimator block has the shape of ``dffd replay``'s summary (n, bias_m, std_m, rms_m,
 ss_std_m, p95_abs_m) so one reader serves both; the bench adds ``ss_bias_m`` and ``ss_rms_m``.
@@ -36,7 +36,7 @@ GIT_TIMEOUT_S = 5.0
 
 
 def summary_stats(t: FloatArray, err: FloatArray, settle_t: float) -> dict[str, Any]:
-    """Error summary of DESIGN §7 over samples ``err`` at ``t`` (steady state: t ≥ settle_t).
+    """Error summary of design.md §8 over samples ``err`` at ``t`` (steady state: t ≥ settle_t).
 
     The §7 block comes from ``dffd.replay.error_stats`` (one definition for replay and bench);
     the bench adds the steady-state bias, RMS and p95.

@@ -101,7 +101,7 @@ def run_fast(scenario: Scenario, options: RunOptions) -> list[RunResult]:
 
 
 class RecordingSink:
-    """Writes every frame of a lock-step session as a DESIGN §7 recording."""
+    """Writes every frame of a lock-step session as a docs/design.md §8 recording."""
 
     def __init__(self, writer: RecordingWriter) -> None:
         self._writer = writer

@@ -95,7 +95,7 @@ class BaselineSpec(_Model):
 
 
 class ThresholdSpec(_Model):
-    """Goals checked in the report (DESIGN §8, issue 6)."""
+    """Goals checked in the report (docs/design.md §10, issue 6)."""
 
     ss_std_max_m: float | None = None  # best estimator's steady-state std must be below this
     ss_std_vs_measured_max: float | None = None  # … and at most this fraction of raw z_m's

@@ -1,4 +1,4 @@
-"""Recording format (DESIGN §7): writer/reader round trip, inferred bursts, errors."""
+"""Recording format (docs/design.md §8): writer/reader round trip, inferred bursts, errors."""
 
 from __future__ import annotations
 

@@ -100,7 +100,7 @@ def _contour_r(image: np.ndarray, background: float, foreground: float) -> tuple
 def _focus_cost(
     image: np.ndarray, centre: tuple[float, float], radius: float, half_width: float
 ) -> float:
-    """DESIGN (2): inverse mean of squared max gradient magnitude along 64 boundary normals."""
+    """design.md §3.2: inverse mean of squared max gradient magnitude along 64 boundary normals."""
     img = image.astype(np.float32)
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) / 8.0

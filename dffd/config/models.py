@@ -211,7 +211,7 @@ class SchedulerSection(_Section):
 
 
 class EstimatorsSection(_Section):
-    """``[estimators]``: which estimate is ``best`` and the noise model (DESIGN §3)."""
+    """``[estimators]``: which estimate is ``best`` and the noise model (docs/design.md §4)."""
 
     best: BestEstimator = "lpv"
     sigma_psi: Annotated[float, Field(gt=0, le=100)] = Field(
@@ -477,7 +477,7 @@ class WebSection(_Section):
 
 
 class DffdConfig(BaseSettings):
-    """The whole configuration (DESIGN §9); build it with :func:`load_config`."""
+    """The whole configuration (docs/design.md §9); build it with :func:`load_config`."""
 
     model_config = SettingsConfigDict(
         env_prefix=ENV_PREFIX,

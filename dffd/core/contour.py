@@ -1,4 +1,4 @@
-"""Target acquisition and active-contour boundary tracking (DESIGN §2, issue 4).
+"""Target acquisition and active-contour boundary tracking (docs/design.md §3, issue 4).
 
 The contour is a closed polygon of ``Nl`` points, uniformly spaced in arc length, with outward
 normals. Each frame, the image gradient is computed on the target's neighbourhood only; along every
@@ -394,7 +394,7 @@ def outward_normals(points: FloatArray) -> FloatArray:
 
 
 def radius_of(points: FloatArray) -> float:
-    """Rotation-invariant image size r = sqrt(tr Σ) of boundary points (DESIGN §2)."""
+    """Rotation-invariant image size r = sqrt(tr Σ) of boundary points (docs/design.md §3)."""
     d = points - points.mean(axis=0)
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 

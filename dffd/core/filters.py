@@ -1,4 +1,4 @@
-"""Depth filters and observers (DESIGN §3): CF1, CF2, the LPV observer, a time-varying Kalman
+"""Depth filters and observers (design.md §4): CF1, CF2, the LPV observer, a time-varying Kalman
 filter on the exactly discretised LPV model, and a differentiator for ``ṙ``.
 
 All are continuous-time designs discretised *exactly* for inputs held over a step (zero-order

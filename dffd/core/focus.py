@@ -1,4 +1,4 @@
-"""Focus cost (2), the burst parabola fit and burst planning (DESIGN §2, §4; docs/estimation.md).
+"""Focus cost (2), the burst parabola fit and burst planning (design.md §3, §5; docs/estimation.md).
 
 The cost model ``g(v0) = a (v0 − v)² + c`` holds in the lens-to-sensor distance ``v0`` (not in
 focus counts): every fit is done in ``v`` through the lens table. Fits are computed in the

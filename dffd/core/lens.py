@@ -1,7 +1,7 @@
 """Lens model: focus counts <-> lens-to-sensor distance v (PCHIP) and the thin-lens depth relation.
 
 One model is built either from a lens table (``dffd/defaults/lenses/*.toml``) or from the ``lens``
-block of a recording's ``meta.json`` (DESIGN §2, §7). Units: millimetres for the lens, metres for
+block of a recording's ``meta.json`` (design.md §3, §8). Units: millimetres for the lens, metres for
 depths handed to the rest of the core.
 """
 
@@ -178,7 +178,7 @@ class Lens:
         return -(f * f) / (v_mm - f) ** 2 / MM_PER_M
 
     def blur_radius_px(self, v0_mm: float, v_mm: float, f_number: float) -> float:
-        """Geometric blur-circle radius (px) for setting ``v0`` when ``v`` is sharp (DESIGN §2)."""
+        """Blur-circle radius (px) for setting ``v0`` when ``v`` is sharp (design.md §3)."""
         aperture = self.focal_length_mm / f_number
         return 0.5 * aperture * abs(v0_mm - v_mm) / v_mm / self.pixel_pitch_mm
 

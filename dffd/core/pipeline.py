@@ -73,7 +73,7 @@ class PipelineConfig:
     burst_size: int = 3  # frames of a complete burst
     # Rolling bursts: the previous end must be at most this old (s) to close a burst with.
     rolling_max_span_s: float = 2.0
-    # image scale: "pinhole" f/p (DESIGN (3), the reference simulator) or "thin_lens" v0/p
+    # image scale: "pinhole" f/p (docs/design.md §3.4, the reference simulator) or "thin_lens" v0/p
     # (chief ray; lenses whose image size "breathes" with focus)
     magnification: Literal["thin_lens", "pinhole"] = "pinhole"
     transport_measurements: bool = True

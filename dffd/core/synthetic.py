@@ -35,7 +35,7 @@ SAMPLED_KERNEL_MIN_SIGMA_PX = 0.5
 class DiscScene:
     """A flat disc of radius ``radius_m`` facing the camera; image 640×480 by default."""
 
-    radius_m: float = 0.03576  # DESIGN §8: sqrt(tr Σ) of a disc boundary is its radius
+    radius_m: float = 0.03576  # docs/design.md §10: sqrt(tr Σ) of a disc boundary is its radius
     width: int = 640
     height: int = 480
     foreground: float = 200.0

@@ -10,7 +10,7 @@ FrameRole = Literal["track", "burst", "transit"]
 
 @dataclass(frozen=True, slots=True)
 class FrameTag:
-    """What the scheduler knew about one exposure (DESIGN §4)."""
+    """What the scheduler knew about one exposure (docs/design.md §5)."""
 
     role: FrameRole
     focus_counts: int | None  # None for transit frames (the lens moved during the exposure)

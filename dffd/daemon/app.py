@@ -1,6 +1,6 @@
 """``dffd run``: the daemon — camera, capture, scheduler, estimator thread, MQTT, log, systemd.
 
-The asyncio shell (DESIGN §1) only moves bytes, frames and messages; every decision is made by
+The asyncio shell (design.md §2) only moves bytes, frames and messages; every decision is made by
 the pure :class:`~dffd.scheduler.Scheduler` and the estimation core. Layout at run time:
 
 * tasks under one ``asyncio.TaskGroup``: **capture** (frame source → scheduler tag → estimator
@@ -116,7 +116,7 @@ STATUS_PERIOD_S = 1.0
 # a past wake-up from becoming a busy loop.
 SCHEDULER_MIN_WAIT_S = 0.001
 SCHEDULER_IDLE_S = 0.5
-# Bounded queues (DESIGN §8: no unbounded queue anywhere).
+# Bounded queues (docs/design.md §10: no unbounded queue anywhere).
 RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
 
 

@@ -1,1 +1,1 @@
-"""MQTT interface (DESIGN §6): payload models, topics, JSON Schemas and the publisher client."""
+"""MQTT interface (design.md §7): payload models, topics, JSON Schemas and the publisher client."""

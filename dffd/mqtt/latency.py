@@ -5,7 +5,7 @@ publishes Estimates through :class:`~dffd.mqtt.publisher.Publisher` at ``--rate`
 them with a plain subscriber in the same process and prints p50/p99/max of (receive time −
 ``t_mono``), plus the CPU cost of building and serialising one Estimate. Publisher and
 subscriber share the monotonic clock, so no clock sync is involved. This is the MQTT share of
-DESIGN §8's exposure → subscriber budget (p50 ≤ 10 ms, p99 ≤ 30 ms).
+docs/design.md §10's exposure → subscriber budget (p50 ≤ 10 ms, p99 ≤ 30 ms).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Pydantic models of every MQTT payload (DESIGN §6, §9), version ``"schema": 1``.
+"""Pydantic models of every MQTT payload (docs/design.md §7, §9), version ``"schema": 1``.
 
 Conventions: ``t`` is UTC wall time (seconds since the epoch), ``t_mono`` the monotonic time in
 seconds of the frame's exposure (or of the event), field names carry SI units (``z_m``,
@@ -105,7 +105,7 @@ class Estimate(Payload):
 
 
 class Fit(BaseModel):
-    """The parabola g(v0) = α v0² + β v0 + γ fitted to one burst (DESIGN §2)."""
+    """The parabola g(v0) = α v0² + β v0 + γ fitted to one burst (docs/design.md §3)."""
 
     model_config = _STRICT
 

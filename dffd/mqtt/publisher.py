@@ -1,6 +1,6 @@
 """The MQTT client task: publishes payloads, survives broker outages, serves ``…/cmd``.
 
-DESIGN §6. One :class:`Publisher` per daemon. The daemon hands it payload models with
+docs/design.md §7. One :class:`Publisher` per daemon. The daemon hands it payload models with
 :meth:`Publisher.publish` (never blocks: a bounded queue, drop-oldest with a counter) and runs
 :meth:`Publisher.run` in its TaskGroup (or uses ``async with Publisher(...)``). The client
 

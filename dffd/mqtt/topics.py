@@ -1,4 +1,4 @@
-"""Topic names and their QoS/retain policy (DESIGN §6): ``<prefix>/<camera>/<leaf>``."""
+"""Topic names and their QoS/retain policy (docs/design.md §7): ``<prefix>/<camera>/<leaf>``."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from typing import Literal
 
 TopicKind = Literal["estimate", "measurement", "status", "cmd", "cmd_reply", "sim_truth"]
 
-# leaf below <prefix>/<camera>/, QoS, retained — the table of DESIGN §6
+# leaf below <prefix>/<camera>/, QoS, retained — the table of docs/design.md §7
 TOPIC_POLICY: dict[TopicKind, tuple[str, int, bool]] = {
     "estimate": ("estimate", 0, False),
     "measurement": ("measurement", 0, False),
@@ -60,7 +60,7 @@ class Topics:
 
 
 def qos(kind: TopicKind) -> int:
-    """QoS level used for ``kind`` (DESIGN §6)."""
+    """QoS level used for ``kind`` (docs/design.md §7)."""
     return TOPIC_POLICY[kind][1]
 
 

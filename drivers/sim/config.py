@@ -3,7 +3,7 @@
 ``drivers/sim/data/sim-camera.toml`` is the reference camera (package data, see
 :mod:`drivers.sim.resources`); every value there carries its source or the
 assumption behind it. Units are in the field names (``_mm``, ``_m``, ``_px``, ``_dn`` = digital
-numbers of the 8-bit output, ``_s``). Coordinates follow DESIGN / ``hil/scenario.py``: the world
+numbers of the 8-bit output, ``_s``). Coordinates follow docs/design.md §11: the world
 frame is the camera frame at pan = tilt = 0 (OpenCV: x right, y down, z forward, metres) with
 the pan/tilt head at the origin; "horizontal" is the x–z plane.
 
@@ -60,7 +60,7 @@ class LensConfig(_Model):
     focus_curvature: float = Field(default=0.8, ge=0.0, le=10.0)
     residual_blur_px: float = Field(default=0.6, ge=0.0, le=10.0)  # Gaussian σ0 of the focused PSF
     psf: Literal["disc", "gaussian"] = "disc"
-    # Magnification v0/z (thin lens, chief ray) instead of the pinhole f/z of DESIGN (3).
+    # Magnification v0/z (thin lens, chief ray) instead of the pinhole f/z of docs/design.md §3.4.
     breathing: bool = False
     # σ of the focus motor's landing error per move, in counts (repeatability).
     focus_jitter_counts: float = Field(default=0.0, ge=0.0, le=1000.0)

@@ -10,7 +10,7 @@ time line:
   packet is handed over when its last byte has arrived. Byte faults (drop, corrupt, duplicate),
   stalls and garbage from :mod:`drivers.sim.faults` are applied on the wire.
 * **One message per video field.** Complete packets wait in a bounded queue; the camera takes one
-  per field (1/60 s) at the field boundaries, so a reply comes within ~1 V (DESIGN §5).
+  per field (1/60 s) at the field boundaries, so a reply comes within ~1 V (docs/design.md §6).
 * **Sockets.** Commands that take time (absolute/relative/home/reset moves, Focus/Zoom Direct,
   power-on, One Push AF) hold one of two sockets until their motion ends, then Completion
   ``z0 5y FF``; instant commands (Pan-tiltDrive, Focus Far/Near/Stop, Focus Auto/Manual) get ACK
@@ -60,7 +60,7 @@ from drivers.visca.codec import (
 logger = logging.getLogger(__name__)
 TRACE = 5  # raw bytes are logged below DEBUG (STYLE §8)
 
-# ---- model constants (EVI-D100-like, DESIGN §5) ---------------------------------------------
+# ---- model constants (EVI-D100-like, design.md §6) ---------------------------------------------
 
 FIELD_PERIOD_S = 1.0 / 60.0  # NTSC field: the camera handles at most one message per field
 BITS_PER_BYTE = 10  # 8N1 on the wire: start bit, 8 data bits, stop bit
@@ -120,7 +120,7 @@ class DeviceConfig:
     power_on_s: float = DEFAULT_POWER_ON_S
     autofocus_at_power_up: bool = True  # real cameras come up in AF: drivers must set manual
     network_change_at_power_up: bool = True
-    reply_from_a0: bool = False  # firmware quirk (DESIGN §5): replies carry header A0, not 90
+    reply_from_a0: bool = False  # firmware quirk (design.md §6): replies carry header A0, not 90
     vendor: int = VENDOR_SONY
     model: int = MODEL_EVI_D100
     rom: int = DEFAULT_ROM

@@ -15,7 +15,7 @@ shared bug must not cancel out):
   aperture). PSF: a uniform disc of radius ``b/p`` pixels (default) or a Gaussian of the same
   second moment (σ = b/2), convolved with a residual Gaussian σ0 (aberrations, sensor).
 * Perspective projection through the optical centre at the pan/tilt rotation centre; image
-  scale ``f/p`` px (pinhole, DESIGN (3)) or ``v0/p`` (chief ray of a thin lens, "breathing").
+  scale ``f/p`` px (pinhole, design.md §3.4) or ``v0/p`` (chief ray of a thin lens, "breathing").
 * Sensor: shot noise (variance ``signal/gain``), Gaussian read noise, rounding to 8 bits.
 
 Rendering touches only the target's neighbourhood: the outline is filled on a supersampled
@@ -200,12 +200,12 @@ class Optics:
         return [(c, round(self.lens_to_sensor_mm(c, zoom_counts), digits)) for c in counts]
 
     def lens_table_toml(self, zoom_counts: int) -> str:
-        """The lens calibration file (DESIGN §2 format) of this camera at a fixed zoom."""
+        """The lens calibration file (docs/design.md §3 format) of this camera at a fixed zoom."""
         rows = self.lens_table(zoom_counts)
         width = LENS_TABLE_DECIMALS
         table = ",\n".join(f"    [{c}, {v:.{width}f}]" for c, v in rows)
         return (
-            "# Ground-truth focus calibration of the simulated EVI-D100-like camera (DESIGN §2).\n"
+            "# Ground-truth focus table of the simulated EVI-D100-like camera (design.md §3).\n"
             "# GENERATED from the reference camera (drivers/sim/data/sim-camera.toml) by\n"
             "#   python -m drivers.sim.optics --write dffd/defaults/lenses/sim-evi-d100.toml\n"
             "# Do not edit by hand; tests/test_sim_optics.py checks it against the simulator.\n"

@@ -180,7 +180,7 @@ class SimCameraServer:
         assert self._loop is not None
         master, slave = os.openpty()
         try:
-            # Fully raw on both ends: no echo, no CR/NL translation, no signals (DESIGN §5).
+            # Fully raw on both ends: no echo, no CR/NL translation, no signals (docs/design.md §6).
             tty.setraw(master)
             tty.setraw(slave)
             os.set_blocking(master, False)

@@ -4,7 +4,7 @@ Frame: the camera frame at pan = tilt = 0 (OpenCV: x right, y down, z forward, m
 pan/tilt head at the origin; "horizontal" is the x–z plane. The target is a flat card that always
 faces the camera (its plane is perpendicular to the line of sight, as the paper assumes of the
 target boundary) and may spin about the line of sight. Its size ``R`` is ``sqrt(tr Σ)`` of its
-boundary sampled uniformly in arc length (DESIGN §2) — for a disc, the radius.
+boundary sampled uniformly in arc length (docs/design.md §3) — for a disc, the radius.
 
 Target-plane coordinates ``(a, b)``: ``a`` horizontal to the right, ``b`` downwards, as seen from
 the camera; textures are stored with rows along ``+b``.

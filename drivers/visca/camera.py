@@ -122,7 +122,7 @@ class CameraProfile:
         return _speed_code(speed, self.tilt_speeds_deg_s, field, self.name)
 
 
-# EVI-D100 (DESIGN §5; Sony EVI-D100 technical manual): pan ±100° = 0xFA60…0x05A0, tilt ±25° =
+# EVI-D100 (design.md §6; Sony EVI-D100 technical manual): pan ±100° = 0xFA60…0x05A0, tilt ±25° =
 # 0xFE98…0x0168, 14.4 counts/°; pan codes 01…18, tilt 01…14 share one table.
 _D100_SPEEDS = (
     2.0, 2.4, 3.0, 3.7, 4.7, 6.1, 7.4, 9.1, 11.0, 14.0, 18.0, 22.0,

@@ -3,7 +3,7 @@
 Pure functions and frozen dataclasses only; both the driver (controller side) and the simulated
 camera (device side) use this module, so a packet is encoded and decoded in exactly one place.
 
-Framing (DESIGN §5): header ``0x80 | sender << 4 | receiver``, 1–14 message bytes, terminator
+Framing (design.md §6): header ``0x80 | sender << 4 | receiver``, 1–14 message bytes, terminator
 ``FF``; packets are 3–16 bytes. Multi-byte values travel one nibble per byte (``0p 0q 0r 0s``) so
 ``FF`` never occurs inside a packet.
 """
