@@ -24,6 +24,7 @@ import numpy as np
 from dffd.config import ConfigError, load_config
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
+from dffd.core.tracking3d import Track3DEstimate
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.recording import RecordingError, RecordingReader, Truth
 from dffd.step import CoreStep
@@ -119,19 +120,26 @@ def replay(
         core.pipeline.acquire_roi(*roi)
     result = ReplayResult()
     for frame, tag in frames:
-        out = core.step(frame, tag).output
+        step = core.step(frame, tag)
+        out = step.output
         if out.measurement is not None:
             if out.measurement.accepted:
                 result.accepted += 1
             else:
                 result.rejected += 1
         if out.estimate is not None:
-            result.lines.append(estimate_line(out.estimate))
+            result.lines.append(estimate_line(out.estimate, step.track))
     return result
 
 
-def estimate_line(e: Estimate) -> dict[str, Any]:
-    """One EST.jsonl object (docs/design.md §8 fields first, then the rest of the estimate)."""
+def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str, Any]:
+    """One EST.jsonl object (docs/design.md §8 fields first, then the rest of the estimate).
+
+    The 3D tracker's fields (world frame, docs/tracking3d.md) are null on a frame without a
+    track: ``track_position_m``/``track_velocity_m_s`` (the payload's ``position_m`` and
+    ``velocity_m_s`` when present), ``acceleration_m_s2``, ``angular_speed_rad_s``,
+    ``position_sigma_m`` and ``model_probabilities``.
+    """
     return {
         "t_s": e.t,
         "depth_m": {k: e.depth_m.get(k) for k in ESTIMATORS},
@@ -151,6 +159,13 @@ def estimate_line(e: Estimate) -> dict[str, Any]:
         "pan_deg": e.pan_deg,
         "tilt_deg": e.tilt_deg,
         "focus_counts": e.focus_counts,
+        "velocity_world_m_s": None if e.velocity_world_m_s is None else list(e.velocity_world_m_s),
+        "track_position_m": None if track is None else list(track.position_m),
+        "track_velocity_m_s": None if track is None else list(track.velocity_m_s),
+        "acceleration_m_s2": None if track is None else list(track.acceleration_m_s2),
+        "angular_speed_rad_s": None if track is None else track.angular_speed_rad_s,
+        "position_sigma_m": None if track is None else list(track.position_sigma_m),
+        "model_probabilities": None if track is None else dict(track.model_probabilities),
     }
 
 

@@ -183,6 +183,57 @@ def test_a_core_output_that_does_not_fit_the_schema_is_skipped_not_fatal() -> No
     assert payloads.skipped == 2
 
 
+def test_the_estimate_payload_carries_the_3d_track_and_fits_the_shipped_schema() -> None:
+    import json
+    from pathlib import Path
+
+    import jsonschema
+
+    from dffd.core.pipeline import Estimate as CoreEstimate
+    from dffd.core.tracking3d import Track3DEstimate
+    from dffd.daemon.payloads import Payloads
+
+    est = CoreEstimate(
+        frame_index=7, t=12.5, state="tracking",
+        depth_m={"measured": None, "cf1": None, "cf2": 2.0, "lpv": 2.01, "kf": 2.0},
+        measured_t=None, best="lpv", z_m=2.01, sigma_m=0.02, beta_m_s=0.0, lpv_b_m_s=0.0,
+        size_m=0.036, r_px=40.0, rho=0.0, centroid_px=(330.0, 250.0),
+        position_m=(0.01, 0.02, 2.01), velocity_m_s=(0.0, 0.0, 0.1),
+        position_world_m=(0.01, 0.02, 2.01), velocity_world_m_s=(0.0, 0.0, 0.1),
+        pan_deg=0.0, tilt_deg=0.0, focus_counts=0x4000, inlier_fraction=1.0,
+    )  # fmt: skip
+    track = Track3DEstimate(
+        t=12.5, position_m=(0.011, 0.019, 2.0), velocity_m_s=(0.2, 0.0, 0.05),
+        acceleration_m_s2=(0.0, 0.0, -0.04), angular_speed_rad_s=0.2,
+        position_sigma_m=(0.001, 0.001, 0.02),
+        model_probabilities={"cv": 0.1, "ca": 0.2, "ct": 0.7},
+    )  # fmt: skip
+    schema_file = Path(__file__).resolve().parent.parent / "dffd/schemas/estimate.schema.json"
+    validator = jsonschema.Draft202012Validator(json.loads(schema_file.read_text("utf-8")))
+    payloads = Payloads("lpv")
+    with_track = payloads.estimate(est, track)
+    assert with_track is not None
+    doc = json.loads(with_track.to_json())
+    validator.validate(doc)
+    assert doc["position_m"] == list(track.position_m)  # the tracker's, not the raw point
+    assert doc["velocity_m_s"] == list(track.velocity_m_s)
+    assert doc["acceleration_m_s2"] == list(track.acceleration_m_s2)
+    assert doc["angular_speed_rad_s"] == 0.2
+    assert doc["position_sigma_m"] == list(track.position_sigma_m)
+    assert doc["model_probabilities"] == {"cv": 0.1, "ca": 0.2, "ct": 0.7}
+    without = payloads.estimate(est)
+    assert without is not None
+    doc = json.loads(without.to_json())
+    validator.validate(doc)  # every key present, the tracker's null
+    assert doc["position_m"] == list(est.position_world_m)
+    for key in ("acceleration_m_s2", "angular_speed_rad_s", "position_sigma_m"):
+        assert doc[key] is None
+    assert doc["model_probabilities"] is None
+    bad = dict(doc, model_probabilities={"cv": 1.5})
+    with pytest.raises(jsonschema.ValidationError):
+        validator.validate(bad)
+
+
 async def test_a_core_command_the_busy_estimator_cannot_apply_is_rejected_with_advice(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -63,6 +63,13 @@ def test_replay_writes_estimates_summary_and_plot(
     assert last["r_px"] > 0
     assert last["size_m"] == pytest.approx(0.03576, rel=0.02)
     assert any(ln["depth_m"]["measured"] is not None for ln in lines)
+    # The 3D tracker's fields: a track on the static target at the back-projected position.
+    assert sum(last["model_probabilities"].values()) == pytest.approx(1.0)
+    assert set(last["model_probabilities"]) == {"cv", "ca", "ct"}
+    assert last["track_position_m"] == pytest.approx(last["position_world_m"], abs=0.05)
+    assert all(s > 0 for s in last["position_sigma_m"])
+    assert len(last["acceleration_m_s2"]) == len(last["track_velocity_m_s"]) == 3
+    assert math.isfinite(last["angular_speed_rad_s"])
     summary = json.loads(summ.read_text())
     assert summary["schema"] == 1
     assert summary["settle_s"] == 3

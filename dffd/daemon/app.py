@@ -584,7 +584,7 @@ class Daemon:
                         self.dashboard.on_measurement(payload_m)
             payload_e = None
             if out.estimate is not None:
-                payload_e = self.payloads.estimate(out.estimate)
+                payload_e = self.payloads.estimate(out.estimate, result.step.track)
             if payload_e is not None:
                 self.board.on_estimate(now, payload_e)
                 log.append("estimate", payload_e)

@@ -15,6 +15,7 @@ from pydantic import BaseModel, ValidationError
 
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
+from dffd.core.tracking3d import Track3DEstimate
 from dffd.mqtt import models
 
 _LOGGER = logging.getLogger(__name__)
@@ -34,9 +35,11 @@ class Payloads:
         self.measurement_seq = 0
         self.skipped = 0  # outputs that did not fit their schema
 
-    def estimate(self, est: CoreEstimate) -> models.Estimate | None:
-        """The ``…/estimate`` payload of ``est`` (None: skipped)."""
-        return self.or_none(self._estimate, est)
+    def estimate(
+        self, est: CoreEstimate, track: Track3DEstimate | None = None
+    ) -> models.Estimate | None:
+        """The ``…/estimate`` payload of ``est`` and the frame's 3D ``track`` (None: skipped)."""
+        return self.or_none(self._estimate, (est, track))
 
     def measurement(self, m: CoreMeasurement) -> models.Measurement | None:
         """The ``…/measurement`` payload of a burst (None: skipped)."""
@@ -56,7 +59,8 @@ class Payloads:
             _LOGGER.log(level, "not published (%d so far): %s", self.skipped, exc)
             return None
 
-    def _estimate(self, est: CoreEstimate) -> models.Estimate:
+    def _estimate(self, item: tuple[CoreEstimate, Track3DEstimate | None]) -> models.Estimate:
+        est, track = item
         self.estimate_seq += 1
         d = est.depth_m
         depth = models.DepthByEstimator(
@@ -80,8 +84,12 @@ class Payloads:
             size_m=nonneg(est.size_m),
             r_px=nonneg(est.r_px),
             rho_per_s=_fin(est.rho),
-            position_m=_vec(est.position_world_m),
-            velocity_m_s=_vec(est.velocity_world_m_s),
+            position_m=_vec(track.position_m if track else est.position_world_m),
+            velocity_m_s=_vec(track.velocity_m_s if track else est.velocity_world_m_s),
+            acceleration_m_s2=_vec(track.acceleration_m_s2) if track else None,
+            angular_speed_rad_s=_fin(track.angular_speed_rad_s) if track else None,
+            position_sigma_m=_vec(track.position_sigma_m) if track else None,
+            model_probabilities=dict(track.model_probabilities) if track else None,
             pan_deg=_fin(est.pan_deg) or 0.0,
             tilt_deg=_fin(est.tilt_deg) or 0.0,
             focus_counts=est.focus_counts if est.focus_counts and est.focus_counts >= 0 else None,

@@ -21,6 +21,8 @@ EstimatorName = Literal["lpv", "kf", "cf2", "cf1"]
 Availability = Literal["online", "offline"]
 
 NonNegInt = Annotated[int, Field(ge=0)]
+NonNeg = Annotated[float, Field(ge=0)]
+Probability = Annotated[float, Field(ge=0, le=1)]
 Meters = float
 Vec3 = tuple[float, float, float]
 
@@ -89,9 +91,29 @@ class Estimate(Payload):
     size_m: Annotated[float, Field(ge=0)] | None = Field(description="R̂, the target's real size")
     r_px: Annotated[float, Field(ge=0)] | None = Field(description="image size r = sqrt(tr Σ)")
     rho_per_s: float | None = Field(default=None, description="ρ = ṙ/r")
-    position_m: Vec3 | None = Field(description="target position [x, y, z] in the world frame")
+    position_m: Vec3 | None = Field(
+        description="target position [x, y, z] in the world frame: the 3D tracker's when it holds"
+        " a track, else the frame's back-projection (docs/tracking3d.md)"
+    )
     velocity_m_s: Vec3 | None = Field(
-        default=None, description="target velocity in the world frame"
+        default=None,
+        description="target velocity in the world frame: the 3D tracker's when it holds a track,"
+        " else the smoothed derivative of the back-projected position",
+    )
+    acceleration_m_s2: Vec3 | None = Field(
+        default=None, description="target acceleration in the world frame (3D tracker)"
+    )
+    angular_speed_rad_s: float | None = Field(
+        default=None,
+        description="turn rate of the velocity about the upward vertical, + counter-clockwise"
+        " seen from above (3D tracker)",
+    )
+    position_sigma_m: tuple[NonNeg, NonNeg, NonNeg] | None = Field(
+        default=None, description="1σ of position_m per world axis (3D tracker)"
+    )
+    model_probabilities: dict[str, Probability] | None = Field(
+        default=None,
+        description="the 3D tracker's motion-model probabilities (cv, ca, ct), summing to 1",
     )
     pan_deg: float
     tilt_deg: float
