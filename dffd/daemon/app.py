@@ -21,15 +21,8 @@ console row), :mod:`~dffd.daemon.payloads` (core outputs → MQTT models) and
 :mod:`~dffd.daemon.dashboard`. The objects are built from the configuration by
 :mod:`dffd.wiring`, as the bench and ``dffd replay`` build them.
 
-Without ``--config`` (or with ``camera.driver = "sim"``) the camera is the simulator: its VISCA
-device on a real pty (:class:`~drivers.sim.server.SimCameraServer`), its renderer as the frame
-source, ground truth on ``…/sim/truth``; ``mqtt.url = "embedded"`` starts the embedded amqtt
-broker on 127.0.0.1. The world is ``sim.scenario``'s ``[target]`` and ``[trajectory]`` tables (a
-world shipped in ``drivers/sim/data/worlds/``, or a file path) applied to the
-simulated camera's own config types (``drivers.sim.config``), ``sim.start_phase_deg`` overriding
-the start phase (the default demo starts the circle at its far point). With a config naming a
-serial port, a video device (``[capture]`` → :class:`drivers.capture.OpenCVFrameSource`) and a
-broker it is the lab service.
+Start-up (embedded broker, the simulated or real camera, the frame source, camera
+initialisation) is :mod:`~dffd.daemon.startup`.
 
 Acquisition (the same live and on the simulator): the lens goes to
 ``scheduler.initial_focus_depth_m``; every frame reaches the core, those of the start-up focus
@@ -70,6 +63,14 @@ from dffd.daemon.estimator import EstimatorResult, EstimatorThread
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
 from dffd.daemon.notify import Notifier
 from dffd.daemon.payloads import Payloads, truth_payload
+from dffd.daemon.startup import (
+    CAMERA_INIT_TIMEOUT_S,
+    DaemonError,
+    initialize_camera,
+    open_source,
+    start_broker,
+    start_camera_transport,
+)
 from dffd.daemon.status import StatusBoard, link_health
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.mqtt import models
@@ -79,11 +80,8 @@ from dffd.scheduler import Action, Scheduler, SchedulerConfig, depth_rate_limit
 from dffd.web.interface import Snapshot
 from dffd.web.listen import WebConfigError
 from dffd.wiring import (
-    WiringError,
     build_core,
-    capture_source,
     scheduler_config,
-    sim_camera_config,
 )
 from drivers.frames import Frame, FrameSource, FrameSourceError
 from drivers.visca.camera import Camera, profile_for
@@ -103,8 +101,6 @@ _LOGGER = logging.getLogger(__name__)
 SHUTDOWN_TIMEOUT_S = 10.0
 # Pan/tilt stop at shutdown: one command and its Completion (~2 fields) with retries.
 PAN_TILT_STOP_TIMEOUT_S = 2.0
-# Camera initialisation: Address Set, IF_Clear, power (the D100 takes ~10 s from standby), zoom.
-CAMERA_INIT_TIMEOUT_S = 30.0
 # A frame must arrive within this time (30 fps → 33 ms; a USB grabber may stall ~1 s on
 # re-negotiation) before capture is reported stalled (it then keeps waiting).
 FRAME_TIMEOUT_S = 2.0
@@ -118,10 +114,6 @@ SCHEDULER_MIN_WAIT_S = 0.001
 SCHEDULER_IDLE_S = 0.5
 # Bounded queues (docs/design.md §10: no unbounded queue anywhere).
 RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
-
-
-class DaemonError(RuntimeError):
-    """Start-up or run-time failure; the message says what was wrong and what to do."""
 
 
 # -- CLI ----------------------------------------------------------------------------------------
@@ -201,7 +193,6 @@ class Daemon:
         self.scheduler: Scheduler | None = None
         self.publisher: Publisher | None = None
         self._sched_config: SchedulerConfig | None = None
-        self._zoom: int | None = None
         self.dashboard: Dashboard | None = None
         self._web: WebSettings | None = None
 
@@ -260,9 +251,14 @@ class Daemon:
         )
         try:
             async with contextlib.AsyncExitStack() as stack:
-                await self._start_broker(stack)
-                port = await self._start_camera_transport(stack)
-                source, exposure_s, focus_speed = await self._start_source(stack, lens)
+                self._parts.broker = await start_broker(cfg, stack)
+                port, self._parts.sim_server, rig = await start_camera_transport(
+                    cfg, stack, self.sim_faults
+                )
+                source, exposure_s, focus_speed, truth_for = open_source(cfg, rig)
+                self._parts.source = source
+                self._parts.truth_for = truth_for
+                stack.push_async_callback(self._source_close)
                 self._sched_config = scheduler_config(
                     self.config,
                     fps=source.fps,
@@ -324,9 +320,11 @@ class Daemon:
             try:
                 async with link:
                     camera = Camera(link, cfg.camera.address, profile_for(cfg.camera.model))
-                    await self._initialize_camera(camera, lens)
-                    self.camera = camera
                     assert self.scheduler is not None
+                    await initialize_camera(
+                        camera, lens, cfg.lens.zoom_counts, self.scheduler, self._wake.set
+                    )
+                    self.camera = camera
                     actuators = Actuators(camera, self.scheduler, self._wake.set)
                     await source.start()
                     tasks = [
@@ -384,112 +382,6 @@ class Daemon:
         log = self._parts.log
         if log is not None and not await log.aclose():
             _LOGGER.error("JSONL log did not flush in time; the last records may be missing")
-
-    # -- start-up pieces ------------------------------------------------------------------------
-    async def _start_broker(self, stack: contextlib.AsyncExitStack) -> None:
-        endpoint = self.config.mqtt.endpoint
-        if not endpoint.embedded:
-            return
-        from dffd.daemon.broker import BrokerStartError, EmbeddedBroker
-
-        broker = EmbeddedBroker(endpoint.port, endpoint.host)
-        try:
-            await stack.enter_async_context(broker)
-        except BrokerStartError as exc:
-            raise DaemonError(str(exc)) from exc
-        self._parts.broker = broker
-
-    async def _start_camera_transport(self, stack: contextlib.AsyncExitStack) -> str:
-        cfg = self.config
-        if cfg.camera.driver == "visca":
-            assert cfg.camera.port is not None  # validated by the config
-            return cfg.camera.port
-        from drivers.sim.device import DeviceConfig
-        from drivers.sim.rig import build_sim_camera
-        from drivers.sim.server import SimCameraServer
-
-        try:
-            sim_config = sim_camera_config(cfg)
-        except WiringError as exc:
-            raise DaemonError(str(exc)) from exc
-        rig = build_sim_camera(sim_config, device=DeviceConfig(baud=cfg.camera.baudrate, pace=True))
-        transport = cfg.sim.visca_transport
-        if transport != "pty":
-            from drivers.sim.ip_server import SimUdpServer
-            from drivers.sim.net_server import SimTcpServer
-
-            net_cls = SimUdpServer if transport == "udp" else SimTcpServer
-            net = net_cls(rig.device_config, state=rig.state, faults=self.sim_faults)
-            await stack.enter_async_context(net)
-            self._parts.sim_server = net
-            self._sim_rig = rig
-            _LOGGER.info("simulated camera on %s", net.url)
-            return net.url
-        server = SimCameraServer(rig.device_config, state=rig.state, faults=self.sim_faults)
-        await stack.enter_async_context(server)
-        self._parts.sim_server = server
-        self._sim_rig = rig
-        _LOGGER.info("simulated camera on %s", server.path)
-        return str(server.path)
-
-    async def _start_source(
-        self, stack: contextlib.AsyncExitStack, lens: Lens
-    ) -> tuple[FrameSource, float | None, float]:
-        cfg = self.config
-        if cfg.camera.driver == "sim" or cfg.capture.source == "sim":
-            if cfg.camera.driver != "sim":
-                raise DaemonError(
-                    "capture.source = 'sim' needs camera.driver = 'sim' (the simulator renders "
-                    "what its own camera sees); set capture.source = 'v4l2' for a real camera"
-                )
-            rig = self._sim_rig
-            self._parts.source = rig.source
-            self._parts.truth_for = rig.source.truth_for
-            stack.push_async_callback(self._source_close)
-            return rig.source, rig.config.capture.exposure_s, rig.device_config.focus_speed_counts_s
-        source = capture_source(cfg)
-        self._parts.source = source
-        stack.push_async_callback(self._source_close)
-        profile = profile_for(cfg.camera.model)
-        lo, hi = profile.focus_range
-        return source, None, (hi - lo) / profile.focus_full_travel_s
-
-    async def _initialize_camera(self, camera: Camera, lens: Lens) -> None:
-        try:
-            async with asyncio.timeout(CAMERA_INIT_TIMEOUT_S):
-                await camera.initialize()
-                zoom = self.config.lens.zoom_counts
-                if zoom is None:
-                    zoom = lens.zoom_counts
-                if zoom is not None:
-                    await camera.zoom_direct(zoom)
-                pan, tilt = await camera.pan_tilt_position()
-        except (ViscaError, TimeoutError) as exc:
-            raise DaemonError(
-                f"camera on {camera.link.url} did not initialise: {exc}; check camera.port, "
-                "camera.baudrate, the cable and that the camera is powered"
-            ) from exc
-        assert self.scheduler is not None
-        self.scheduler.on_pan_tilt_position(time.monotonic(), pan, tilt)
-        self._zoom = zoom
-
-        async def after_reinit() -> None:
-            # The link came back (port reopened, Network Change, power cycle): the camera was
-            # re-initialised; its zoom may have reset and the focus and pan/tilt moved.
-            sched = self.scheduler
-            assert sched is not None
-            now = time.monotonic()
-            sched.invalidate_focus(now)
-            sched.on_pan_tilt_failed(now)  # re-anchor the pan/tilt model by inquiry
-            self._wake.set()
-            if self._zoom is not None:
-                try:
-                    await camera.zoom_direct(self._zoom)
-                except ViscaError as exc:
-                    _LOGGER.warning("could not restore the zoom after a reconnect: %s", exc)
-            _LOGGER.info("camera re-initialised: focus re-learnt by inquiry, zoom restored")
-
-        camera.link.add_reinit_callback(after_reinit)
 
     # -- tasks ---------------------------------------------------------------------------------
     async def _capture_loop(self, source: FrameSource) -> None:

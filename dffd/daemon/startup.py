@@ -1,0 +1,164 @@
+"""The daemon's start-up pieces: embedded broker, camera transport, frame source, camera init.
+
+Without ``--config`` (or with ``camera.driver = "sim"``) the camera is the simulator: its VISCA
+device on a real pty (:class:`~drivers.sim.server.SimCameraServer`) or on UDP/TCP
+(``sim.visca_transport``), its renderer as the frame source, ground truth on ``…/sim/truth``;
+``mqtt.url = "embedded"`` starts the embedded amqtt broker on 127.0.0.1. The world is
+``sim.scenario``'s ``[target]`` and ``[trajectory]`` tables (a world shipped in
+``drivers/sim/data/worlds/``, or a file path) applied to the simulated camera's own config types
+(``drivers.sim.config``), ``sim.start_phase_deg`` overriding the start phase (the default demo
+starts the circle at its far point). With a config naming a serial port, a video device
+(``[capture]`` → :class:`drivers.capture.OpenCVFrameSource`) and a broker it is the lab service.
+
+Each piece enters what it starts into the daemon's ``AsyncExitStack`` and returns what the
+daemon keeps; failures the user can fix raise :class:`DaemonError`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from dffd.config import DffdConfig
+from dffd.core.lens import Lens
+from dffd.scheduler import Scheduler
+from dffd.wiring import WiringError, capture_source, sim_camera_config
+from drivers.frames import FrameSource
+from drivers.visca.camera import Camera, profile_for
+from drivers.visca.errors import ViscaError
+
+_LOGGER = logging.getLogger(__name__)
+
+# Camera initialisation: Address Set, IF_Clear, power (the D100 takes ~10 s from standby), zoom.
+CAMERA_INIT_TIMEOUT_S = 30.0
+
+
+class DaemonError(RuntimeError):
+    """Start-up or run-time failure; the message says what was wrong and what to do."""
+
+
+async def start_broker(config: DffdConfig, stack: contextlib.AsyncExitStack) -> Any:
+    """Start the embedded broker if ``mqtt.url = "embedded"``; return it (None otherwise)."""
+    endpoint = config.mqtt.endpoint
+    if not endpoint.embedded:
+        return None
+    from dffd.daemon.broker import BrokerStartError, EmbeddedBroker
+
+    broker = EmbeddedBroker(endpoint.port, endpoint.host)
+    try:
+        await stack.enter_async_context(broker)
+    except BrokerStartError as exc:
+        raise DaemonError(str(exc)) from exc
+    return broker
+
+
+async def start_camera_transport(
+    config: DffdConfig, stack: contextlib.AsyncExitStack, sim_faults: Any
+) -> tuple[str, Any, Any]:
+    """Return ``(port, sim_server, sim_rig)``: the VISCA port, and the simulator if it is one."""
+    cfg = config
+    if cfg.camera.driver == "visca":
+        assert cfg.camera.port is not None  # validated by the config
+        return cfg.camera.port, None, None
+    from drivers.sim.device import DeviceConfig
+    from drivers.sim.rig import build_sim_camera
+    from drivers.sim.server import SimCameraServer
+
+    try:
+        sim_config = sim_camera_config(cfg)
+    except WiringError as exc:
+        raise DaemonError(str(exc)) from exc
+    rig = build_sim_camera(sim_config, device=DeviceConfig(baud=cfg.camera.baudrate, pace=True))
+    transport = cfg.sim.visca_transport
+    if transport != "pty":
+        from drivers.sim.ip_server import SimUdpServer
+        from drivers.sim.net_server import SimTcpServer
+
+        net_cls = SimUdpServer if transport == "udp" else SimTcpServer
+        net = net_cls(rig.device_config, state=rig.state, faults=sim_faults)
+        await stack.enter_async_context(net)
+        _LOGGER.info("simulated camera on %s", net.url)
+        return net.url, net, rig
+    server = SimCameraServer(rig.device_config, state=rig.state, faults=sim_faults)
+    await stack.enter_async_context(server)
+    _LOGGER.info("simulated camera on %s", server.path)
+    return str(server.path), server, rig
+
+
+def open_source(
+    config: DffdConfig, sim_rig: Any
+) -> tuple[FrameSource, float | None, float, Callable[[int], Any] | None]:
+    """Return ``(source, exposure_s, focus_speed_counts_per_s, truth_for)`` for the config."""
+    cfg = config
+    if cfg.camera.driver == "sim" or cfg.capture.source == "sim":
+        if cfg.camera.driver != "sim":
+            raise DaemonError(
+                "capture.source = 'sim' needs camera.driver = 'sim' (the simulator renders "
+                "what its own camera sees); set capture.source = 'v4l2' for a real camera"
+            )
+        rig = sim_rig
+        return (
+            rig.source,
+            rig.config.capture.exposure_s,
+            rig.device_config.focus_speed_counts_s,
+            rig.source.truth_for,
+        )
+    source = capture_source(cfg)
+    profile = profile_for(cfg.camera.model)
+    lo, hi = profile.focus_range
+    return source, None, (hi - lo) / profile.focus_full_travel_s, None
+
+
+async def initialize_camera(
+    camera: Camera,
+    lens: Lens,
+    zoom_counts: int | None,
+    scheduler: Scheduler,
+    wake: Callable[[], None],
+) -> None:
+    """Initialise the camera, set the zoom, anchor pan/tilt; re-do it after every reconnect."""
+    try:
+        async with asyncio.timeout(CAMERA_INIT_TIMEOUT_S):
+            await camera.initialize()
+            zoom = zoom_counts
+            if zoom is None:
+                zoom = lens.zoom_counts
+            if zoom is not None:
+                await camera.zoom_direct(zoom)
+            pan, tilt = await camera.pan_tilt_position()
+    except (ViscaError, TimeoutError) as exc:
+        raise DaemonError(
+            f"camera on {camera.link.url} did not initialise: {exc}; check camera.port, "
+            "camera.baudrate, the cable and that the camera is powered"
+        ) from exc
+    scheduler.on_pan_tilt_position(time.monotonic(), pan, tilt)
+
+    async def after_reinit() -> None:
+        # The link came back (port reopened, Network Change, power cycle): the camera was
+        # re-initialised; its zoom may have reset and the focus and pan/tilt moved.
+        now = time.monotonic()
+        scheduler.invalidate_focus(now)
+        scheduler.on_pan_tilt_failed(now)  # re-anchor the pan/tilt model by inquiry
+        wake()
+        if zoom is not None:
+            try:
+                await camera.zoom_direct(zoom)
+            except ViscaError as exc:
+                _LOGGER.warning("could not restore the zoom after a reconnect: %s", exc)
+        _LOGGER.info("camera re-initialised: focus re-learnt by inquiry, zoom restored")
+
+    camera.link.add_reinit_callback(after_reinit)
+
+
+__all__ = [
+    "CAMERA_INIT_TIMEOUT_S",
+    "DaemonError",
+    "initialize_camera",
+    "open_source",
+    "start_broker",
+    "start_camera_transport",
+]
