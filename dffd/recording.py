@@ -4,8 +4,11 @@
 RUN/meta.json    {"schema": 1, "fps": 30, "frame_size": [w, h], "lens": {...}}
 RUN/frames.csv   index,t_s,role,focus_counts,pan_deg,tilt_deg,file[,burst_id,burst_slot]
 RUN/frames/      one PNG per frame
-RUN/truth.csv    optional: t_s,z_m[,x_m,y_m]
+RUN/truth.csv    optional: t_s,z_m[,x_m,y_m[,x_world_m,…,angular_speed_rad_s]]
 ```
+Truth frames (docs/design.md, recording section): ``z_m``, ``x_m``, ``y_m`` in the camera frame
+at that instant; the 3D columns (:data:`TRUTH_3D_COLUMNS`) in the world frame of
+docs/tracking3d.md.
 ``burst_id``/``burst_slot`` are optional trailing columns written by :class:`RecordingWriter`;
 a recording without them (e.g. from another tool) gets burst ids inferred from runs of burst
 frames (transit frames do not break a run, a track frame does).
@@ -20,7 +23,7 @@ import os
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self, cast
@@ -35,6 +38,17 @@ from drivers.frames import Frame
 SCHEMA = 1
 FRAME_COLUMNS = ("index", "t_s", "role", "focus_counts", "pan_deg", "tilt_deg", "file")
 BURST_COLUMNS = ("burst_id", "burst_slot")
+# truth.csv after t_s: depth and the camera-frame lateral offsets, then the 3D truth in the world
+# frame (position, velocity, acceleration, turn rate about the upward vertical).
+TRUTH_CAMERA_COLUMNS = ("z_m", "x_m", "y_m")
+TRUTH_3D_COLUMNS = (
+    "x_world_m", "y_world_m", "z_world_m",
+    "vx_world_m_s", "vy_world_m_s", "vz_world_m_s",
+    "ax_world_m_s2", "ay_world_m_s2", "az_world_m_s2",
+    "angular_speed_rad_s",
+)  # fmt: skip
+TRUTH_COLUMNS = (*TRUTH_CAMERA_COLUMNS, *TRUTH_3D_COLUMNS)
+_TRUTH_WIDTHS = (1, len(TRUTH_CAMERA_COLUMNS), len(TRUTH_COLUMNS))
 _ROLES: frozenset[str] = frozenset({"track", "burst", "transit"})
 # Frames decoded ahead of the consumer: a 640x480 gray frame is 0.3 MB (BGR 0.9 MB), so 16 hold
 # at most ~15 MB; 16 keeps two decoders busy through the core's slowest frames (a 1-3 ms
@@ -55,12 +69,14 @@ class RecordingError(Exception):
 
 @dataclass(frozen=True, slots=True)
 class Truth:
-    """Ground truth rows of ``truth.csv`` (x, y may be absent)."""
+    """Ground truth rows of ``truth.csv`` (x, y may be absent; ``extra``: every further column,
+    e.g. the world-frame 3D truth of :data:`TRUTH_3D_COLUMNS`)."""
 
     t_s: npt.NDArray[np.float64]
     z_m: npt.NDArray[np.float64]
     x_m: npt.NDArray[np.float64] | None = None
     y_m: npt.NDArray[np.float64] | None = None
+    extra: dict[str, npt.NDArray[np.float64]] = field(default_factory=dict)
 
     def z_at(self, t: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Depth interpolated at times ``t`` (NaN outside the truth's time span)."""
@@ -110,11 +126,12 @@ class RecordingWriter:
         self._frames.writerow([*FRAME_COLUMNS, *BURST_COLUMNS])
         self._truth_file: Any = None
         self._truth: Any = None
-        self._truth_xy: bool | None = None
+        self._truth_width: int | None = None
         self._closed = False
 
     def write(self, frame: Frame, tag: FrameTag, truth: Sequence[float] | None = None) -> None:
-        """Append one frame; ``truth`` is ``(z_m,)`` or ``(z_m, x_m, y_m)`` at ``frame.t``."""
+        """Append one frame; ``truth`` at ``frame.t`` is ``(z_m,)``, ``(z_m, x_m, y_m)`` or every
+        column of :data:`TRUTH_COLUMNS` (camera frame, then the world-frame 3D truth)."""
         if self._closed:
             raise RecordingError(f"recording {self.path} is closed")
         name = f"{frame.index:06d}.png"
@@ -157,19 +174,21 @@ class RecordingWriter:
         self.close()
 
     def _write_truth(self, t: float, truth: Sequence[float]) -> None:
-        xy = len(truth) >= 3
+        width = len(truth)
+        if width not in _TRUTH_WIDTHS:
+            raise RecordingError(
+                f"a truth row has {width} values; give {_TRUTH_WIDTHS} (columns {TRUTH_COLUMNS})"
+            )
         if self._truth is None:
             self._truth_file = (self.path / "truth.csv").open("w", newline="", encoding="utf-8")
             self._truth = csv.writer(self._truth_file)
-            self._truth.writerow(["t_s", "z_m", "x_m", "y_m"] if xy else ["t_s", "z_m"])
-            self._truth_xy = xy
-        if xy != self._truth_xy:
-            raise RecordingError("truth rows must all have (z) or all (z, x, y)")
-        z = truth[0]
-        row = [repr(float(t)), repr(float(z))]
-        if xy:
-            row += [repr(float(truth[1])), repr(float(truth[2]))]
-        self._truth.writerow(row)
+            self._truth.writerow(["t_s", *TRUTH_COLUMNS[:width]])
+            self._truth_width = width
+        if width != self._truth_width:
+            raise RecordingError(
+                f"truth rows must all have {self._truth_width} values, this one has {width}"
+            )
+        self._truth.writerow([repr(float(t)), *(repr(float(v)) for v in truth)])
 
 
 class RecordingReader:
@@ -317,8 +336,12 @@ def _read_truth(path: Path) -> Truth | None:
         z = np.array([float(r["z_m"]) for r in rows])
         x = np.array([float(r["x_m"]) for r in rows]) if "x_m" in fields else None
         y = np.array([float(r["y_m"]) for r in rows]) if "y_m" in fields else None
+        known = {"t_s", "z_m", "x_m", "y_m"}
+        extra = {
+            name: np.array([float(r[name]) for r in rows]) for name in fields if name not in known
+        }
     except (OSError, ValueError, KeyError) as exc:
         raise RecordingError(f"cannot read {path}: {exc}") from exc
     if len(t) > 1 and np.any(np.diff(t) < 0):
         raise RecordingError(f"{path}: t_s must be non-decreasing")
-    return Truth(t, z, x, y)
+    return Truth(t, z, x, y, extra)

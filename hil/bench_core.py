@@ -43,6 +43,7 @@ from dffd.core.lens import Lens
 from dffd.core.types import FrameTag
 from dffd.step import CoreStep
 from drivers.frames import Frame
+from drivers.sim.source import FrameTruth
 
 TARGET_MS = 2.0
 TARGET_RATIO = 10.0
@@ -105,9 +106,9 @@ class _Bench:
             self.scenario, self.case, self.trajectory, self.seed, duration_s=duration, recorder=self
         )
 
-    def add(self, frame: Frame, tag: FrameTag, truth_z_m: float) -> None:
+    def add(self, frame: Frame, tag: FrameTag, truth: FrameTruth) -> None:
         """FrameSink: process ``frame`` with the bench's own pipeline, timed."""
-        del truth_z_m  # the bench scores time only
+        del truth  # the bench scores time only
         self.seen += 1
         timed = WARMUP_FRAMES < self.seen <= WARMUP_FRAMES + self.frames
         t0 = time.thread_time_ns()

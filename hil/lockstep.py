@@ -111,8 +111,8 @@ def run_session(
 class FrameSink(Protocol):
     """Receives every frame with its tag and truth (``--record``); see :mod:`hil.runner`."""
 
-    def add(self, frame: Frame, tag: FrameTag, truth_z_m: float) -> None:
-        """Store one frame."""
+    def add(self, frame: Frame, tag: FrameTag, truth: FrameTruth) -> None:
+        """Store one frame with the simulator's truth at its exposure."""
 
 
 def daemon_config() -> DffdConfig:
@@ -310,7 +310,7 @@ class _Runner:
         res.frames_by_role[tag.role] = res.frames_by_role.get(tag.role, 0) + 1
         self._pan_tilt_sample(tag, truth)
         if self.recorder is not None:
-            self.recorder.add(frame, tag, truth_z)
+            self.recorder.add(frame, tag, truth)
         c0 = time.thread_time()
         step = self.core.step(frame, tag)
         res.core_cpu_s.append(time.thread_time() - c0)

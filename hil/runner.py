@@ -12,6 +12,7 @@ from dffd.core.lens import Lens
 from dffd.core.types import FrameTag
 from dffd.recording import RecordingWriter
 from drivers.frames import Frame
+from drivers.sim.source import FrameTruth
 from hil.report import build_report, format_table, write_plots, write_report
 from hil.results import RunResult
 from hil.scenario import Scenario
@@ -106,9 +107,21 @@ class RecordingSink:
     def __init__(self, writer: RecordingWriter) -> None:
         self._writer = writer
 
-    def add(self, frame: Frame, tag: FrameTag, truth_z_m: float) -> None:
-        """Store one frame with its tag and the true depth."""
-        self._writer.write(frame, tag, (truth_z_m,))
+    def add(self, frame: Frame, tag: FrameTag, truth: FrameTruth) -> None:
+        """Store one frame with its tag and the truth: depth and camera-frame x, y, then the
+        world-frame 3D truth (dffd.recording.TRUTH_COLUMNS)."""
+        cam = truth.position_camera_m
+        self._writer.write(
+            frame,
+            tag,
+            (
+                truth.z_m, cam[0], cam[1],
+                *truth.position_world_m,
+                *truth.velocity_world_mps,
+                *truth.acceleration_world_mps2,
+                truth.angular_speed_rad_s,
+            ),
+        )  # fmt: skip
 
 
 def _merge_pass(res: RunResult, extra: RunResult, policy: str) -> None:

@@ -166,7 +166,14 @@ def test_record_writes_a_replayable_recording(short_run: tuple[Path, dict]) -> N
     assert len(reader) == round(6.0 * reader.fps)
     roles = {tag.role for _, tag in reader}
     assert {"track", "burst"} <= roles
-    assert (rec / "truth.csv").exists()
+    truth = reader.truth
+    assert truth is not None
+    # The 3D truth in the world frame beside the camera-frame depth: the disc rests at (0, 0, 2).
+    np.testing.assert_allclose(truth.z_m, 2.0, atol=1e-6)
+    np.testing.assert_allclose(truth.extra["z_world_m"], 2.0, atol=1e-6)
+    np.testing.assert_allclose(truth.extra["x_world_m"], 0.0, atol=1e-6)
+    for name in ("vx_world_m_s", "az_world_m_s2", "angular_speed_rad_s"):
+        np.testing.assert_allclose(truth.extra[name], 0.0, atol=1e-9)
     assert report["duration_s"] == pytest.approx(6.0)
 
 

@@ -55,6 +55,27 @@ def test_round_trip_is_lossless(tmp_path: Path, bgr: bool) -> None:
     assert rec.truth.z_at([100.0 + 0.5 / 30])[0] == pytest.approx(4.005)
 
 
+def test_truth_carries_the_world_frame_3d_columns(tmp_path: Path) -> None:
+    from dffd.recording import TRUTH_3D_COLUMNS, TRUTH_COLUMNS
+
+    tag = FrameTag("track", 10000, 0.0, 0.0)
+    image = np.zeros((48, 64), dtype=np.uint8)
+    with RecordingWriter(tmp_path / "run", 30, (64, 48), synthetic_lens().to_meta()) as w:
+        for i in range(3):
+            row = (2.0, 0.1, -0.2, 0.5, 0.0, 2.0, 0.1 * i, 0.0, 0.0, 0.0, 0.0, -0.02, 0.2)
+            w.write(Frame(i, i / 30, image), tag, row)
+        with pytest.raises(RecordingError, match="13 values"):
+            w.write(Frame(3, 0.1, image), tag, (2.0, 0.1, -0.2))
+    header = (tmp_path / "run" / "truth.csv").read_text("utf-8").splitlines()[0]
+    assert header.split(",") == ["t_s", *TRUTH_COLUMNS]
+    truth = RecordingReader(tmp_path / "run").truth
+    assert truth is not None
+    assert set(truth.extra) == set(TRUTH_3D_COLUMNS)
+    np.testing.assert_allclose(truth.extra["vx_world_m_s"], [0.0, 0.1, 0.2])
+    np.testing.assert_allclose(truth.extra["angular_speed_rad_s"], [0.2] * 3)
+    assert truth.x_m is not None
+
+
 def test_frames_csv_has_the_design_columns_and_bursts_are_inferred(tmp_path: Path) -> None:
     _write(tmp_path / "run", truth=False)
     csv_path = tmp_path / "run" / "frames.csv"

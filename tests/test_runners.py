@@ -21,6 +21,7 @@ from dffd.replay import estimate_line
 from dffd.step import StepResult
 from dffd.wiring import build_core
 from drivers.frames import Frame
+from drivers.sim.source import FrameTruth
 from hil.lockstep import run_session
 from hil.runner import RecordingSink
 from hil.scenario import load_scenario
@@ -60,9 +61,9 @@ class _Recorded:
         self.frames: list[tuple[Frame, FrameTag]] = []
         self.steps: list[StepResult] = []
 
-    def add(self, frame: Frame, tag: FrameTag, truth_z_m: float) -> None:
+    def add(self, frame: Frame, tag: FrameTag, truth: FrameTruth) -> None:
         self.frames.append((frame, tag))
-        self.sink.add(frame, tag, truth_z_m)
+        self.sink.add(frame, tag, truth)
 
 
 @pytest.fixture(scope="module")
