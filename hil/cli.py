@@ -23,7 +23,7 @@ logger = logging.getLogger(__name__)
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``python -m hil``."""
-    from hil.scenario import SCENARIO_NAMES
+    from hil.scenario import OPTICS_MODELS, SCENARIO_NAMES
 
     parser = argparse.ArgumentParser(
         prog="python -m hil",
@@ -52,6 +52,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--duration", type=float, default=None, help="override the per-case duration (s)"
     )
     run.add_argument("--seed", type=int, action="append", default=None, help="override the seeds")
+    run.add_argument(
+        "--seeds",
+        default=None,
+        metavar="S1,S2,...",
+        help="override the seeds with a comma-separated list; the report adds mean and spread",
+    )
+    run.add_argument(
+        "--optics",
+        choices=OPTICS_MODELS,
+        default=None,
+        help="simulator optics model (default: the scenario's; aberrated: docs/estimation.md §8)",
+    )
     run.add_argument(
         "--set",
         dest="settings",
@@ -128,14 +140,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
 
 
+def parse_seeds(text: str | None) -> list[int]:
+    """``"1,2,3"`` → ``[1, 2, 3]`` (None or empty: no seeds); ValueError says what was wrong."""
+    if not text:
+        return []
+    try:
+        return [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise ValueError(
+            f"--seeds {text!r}: expected comma-separated integers, e.g. --seeds 1,2,3"
+        ) from None
+
+
 def _run(args: argparse.Namespace) -> int:
     from hil.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
     if args.duration is not None:
         scenario = scenario.shortened(args.duration)
-    if args.seed:
-        scenario = scenario.model_copy(update={"seeds": tuple(args.seed)})
+    seeds = [*(args.seed or []), *parse_seeds(args.seeds)]
+    if seeds:
+        scenario = scenario.model_copy(update={"seeds": tuple(dict.fromkeys(seeds))})
+    if args.optics is not None:
+        scenario = scenario.with_optics(args.optics)
     if args.settings:
         scenario = scenario.with_settings(args.settings)
     out = args.out or DEFAULT_OUT / scenario.name

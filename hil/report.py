@@ -135,6 +135,7 @@ def build_report(
         "estimators": estimators,
         "baselines": baselines,
         "bursts": {"accepted": accepted, "rejected": rejected},
+        "seeds": seed_spread(results),
         "rates": rates,
         "latency": latency,
         "cpu": cpu,
@@ -148,6 +149,33 @@ def build_report(
     if bench is not None:
         report["bench"] = bench
     return report
+
+
+def seed_spread(results: Sequence[RunResult]) -> dict[str, Any]:
+    """Per seed (its cases pooled): the best estimator's and raw z_m's steady-state figures;
+    their mean and spread (sample standard deviation, None with one seed) over the seeds."""
+    best = results[0].best
+    rows: list[dict[str, Any]] = []
+    for seed in sorted({r.seed for r in results}):
+        rs = [r for r in results if r.seed == seed]
+        b = series_summary(rs, "estimates", best) or {}
+        m = series_summary(rs, "estimates", "measured") or {}
+        rows.append(
+            {
+                "seed": seed,
+                "best_ss_rms_m": b.get("ss_rms_m"),
+                "best_ss_std_m": b.get("ss_std_m"),
+                "measured_ss_rms_m": m.get("ss_rms_m"),
+                "measured_ss_std_m": m.get("ss_std_m"),
+            }
+        )
+    keys = [k for k in rows[0] if k != "seed"]
+    return {
+        "n": len(rows),
+        "per_seed": rows,
+        "mean": {k: _mean([row[k] for row in rows]) for k in keys},
+        "sd": {k: _sd([row[k] for row in rows]) for k in keys},
+    }
 
 
 def diagnostics(results: Sequence[RunResult]) -> dict[str, Any]:
@@ -371,6 +399,17 @@ def format_table(report: dict[str, Any]) -> str:
                 _num(w["rms_rad_s"], "{:.4f}"),
             )
         )
+    if (sp := report.get("seeds")) and sp["n"] >= 2:
+        mean, sd = sp["mean"], sp["sd"]
+        lines.append(
+            "over {} seeds (mean ± sd): best ss rms {} ± {} mm, z_m ss std {} ± {} mm".format(
+                sp["n"],
+                _mm(mean["best_ss_rms_m"]),
+                _mm(sd["best_ss_rms_m"]),
+                _mm(mean["measured_ss_std_m"]),
+                _mm(sd["measured_ss_std_m"]),
+            )
+        )
     cpu = report["cpu"]
     lines.append(
         "core CPU {} ms/frame (p95 {}); {:.0f} s of scenario in {:.1f} s wall".format(
@@ -397,11 +436,12 @@ def markdown_table(reports: Sequence[dict[str, Any]]) -> str:
     """One row per report: accuracy of z_m, the best estimator, CF2, LPV and the baselines (ss
     std / bias in mm), depth rates and the goals passed — the README's results table."""
     head = (
-        "| scenario | mode | z_m ss std | best (lpv) ss std | cf2 ss std | kf ss std | "
-        "known-size ss std | ArUco ss std | full-sweep ss std | depth Hz (limit) | "
-        "full-sweep Hz | goals |"
+        "| scenario | mode | optics | seeds | z_m ss std | best (lpv) ss std | cf2 ss std | "
+        "kf ss std | known-size ss std | ArUco ss std | full-sweep ss std | "
+        "best ss rms, z_m ss std over seeds (mean ± sd) | depth Hz (limit) | full-sweep Hz | "
+        "goals |"
     )
-    rows = [head, "|" + "---|" * 12]
+    rows = [head, "|" + "---|" * 15]
 
     def ss(block: dict[str, Any] | None) -> str:
         if not block or block.get("ss_std_m") is None:
@@ -409,6 +449,15 @@ def markdown_table(reports: Sequence[dict[str, Any]]) -> str:
         bias = block.get("ss_bias_m")
         b = f" ({bias * 1e3:+.0f})" if bias is not None else ""
         return f"{block['ss_std_m'] * 1e3:.1f}{b}"
+
+    def spread(block: dict[str, Any] | None) -> str:
+        if not block or block["n"] < 2:
+            return "–"
+        mean, sd = block["mean"], block["sd"]
+        return (
+            f"{_mm(mean['best_ss_rms_m'])} ± {_mm(sd['best_ss_rms_m'])}, "
+            f"{_mm(mean['measured_ss_std_m'])} ± {_mm(sd['measured_ss_std_m'])}"
+        )
 
     for r in reports:
         est, base, rates = r["estimators"], r["baselines"], r["rates"]
@@ -418,10 +467,12 @@ def markdown_table(reports: Sequence[dict[str, Any]]) -> str:
         sweep = rates.get("full_sweep_depth_hz")
         over = r.get("overrides") or {}
         mode = r["mode"] + (" +set" if any(over.get(k) for k in over) else "")
+        n_seeds = len({s["seed"] for s in r.get("sessions", [])})
         rows.append(
-            f"| {r['scenario']} | {mode} | {ss(est.get('measured'))} | {ss(est.get(r['best']))} | "
+            f"| {r['scenario']} | {mode} | {r.get('optics', '–')} | {n_seeds} | "
+            f"{ss(est.get('measured'))} | {ss(est.get(r['best']))} | "
             f"{ss(est.get('cf2'))} | {ss(est.get('kf'))} | {ss(base.get('known_size'))} | "
-            f"{ss(base.get('aruco'))} | {ss(base.get('full_sweep'))} | "
+            f"{ss(base.get('aruco'))} | {ss(base.get('full_sweep'))} | {spread(r.get('seeds'))} | "
             f"{rates['depth_hz']:.2f} ({_num(limit, '{:.2f}')}) | {_num(sweep, '{:.2f}')} | "
             f"{passed}/{len(goals)} |"
         )
@@ -606,6 +657,11 @@ def _moments(e: FloatArray) -> dict[str, float | None]:
 def _mean(values: Sequence[float | None]) -> float | None:
     vals = [v for v in values if v is not None and math.isfinite(v)]
     return sum(vals) / len(vals) if vals else None
+
+
+def _sd(values: Sequence[float | None]) -> float | None:
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    return _f(np.std(vals, ddof=1)) if len(vals) >= 2 else None
 
 
 def _sum_dicts(ds: Sequence[dict[str, int]]) -> dict[str, int]:

@@ -53,6 +53,10 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> int:
     thresholds = scenario.thresholds.model_dump()
     report = build_report(results, scenario.name, thresholds)
     report["overrides"] = {"scheduler": scenario.scheduler, "estimator": scenario.estimator}
+    if options.camera is None:  # the simulator renders (not the lab's camera)
+        from hil.simbuild import optics_model
+
+        report["optics"] = optics_model(scenario)
     path = write_report(report, options.out_dir)
     if options.plots:
         plots = write_plots(results, options.out_dir)

@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from drivers.sim.config import SimConfigError
+from drivers.sim.config import OpticsModelName, SimConfigError
 from drivers.sim.resources import world_tables
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
+OPTICS_MODELS: tuple[str, ...] = get_args(OpticsModelName)
 SCENARIO_NAMES = (
     "static",
     "approach",
@@ -77,6 +78,10 @@ class CameraSpec(_Model):
     capture_latency_frames: float | None = Field(None, ge=0.0, le=10.0)
     focus_jitter_counts: float | None = Field(None, ge=0.0)
     motion_blur: bool | None = None
+    # The simulator's optics model (``[optics] model``: reference | aberrated). With a model other
+    # than the reference one the estimator is told that model's own ground-truth lens table
+    # instead of ``lens`` (hil/simbuild.py).
+    optics: OpticsModelName | None = None
     # Extra dotted keys handed to the simulator's config (names as in drivers/sim/config.py),
     # e.g. ``"lens.residual_blur_px" = 0.8``.
     overrides: dict[str, Any] = Field(default_factory=dict)
@@ -176,6 +181,10 @@ class Scenario(_Model):
             {"scheduler": sched, "estimator": est, "camera": cam}[section][name] = value
         camera = self.camera.model_copy(update={"overrides": cam})
         return self.model_copy(update={"scheduler": sched, "estimator": est, "camera": camera})
+
+    def with_optics(self, model: OpticsModelName) -> Scenario:
+        """A copy rendered by the simulator's optics ``model`` (``python -m hil run --optics``)."""
+        return self.model_copy(update={"camera": self.camera.model_copy(update={"optics": model})})
 
     def shortened(self, duration_s: float) -> Scenario:
         """A copy running ``duration_s`` per case (settling scaled down to fit), for smoke tests."""

@@ -139,6 +139,8 @@ def sim_camera_config(
         overrides["lens.focus_jitter_counts"] = cam.focus_jitter_counts
     if cam.motion_blur is not None:
         overrides["capture.motion_blur"] = cam.motion_blur
+    if cam.optics is not None:
+        overrides["optics.model"] = cam.optics
     overrides.update(cam.overrides)
     target = scenario.target.model_dump()
     if target_shape is not None:
@@ -162,11 +164,24 @@ def build_session(
     # not what it measures).
     device = DeviceConfig(pace=True, autofocus_at_power_up=False, network_change_at_power_up=False)
     rig = build_sim_camera(config, device=device, virtual_start_s=0.0, t0=T_FIRST_FRAME_S)
+    if config.optics.model != "reference":
+        # The packaged tables describe the reference lens: another optics model's estimator is
+        # told that model's ground truth (a table `dffd calibrate --sim` fits is issue 11.7).
+        lens_path = _temporary_lens_table(config)
+        notes.append(f"optics {config.optics.model}: the simulator's ground-truth lens table used")
+        return SimSession(rig, lens_path, notes)
     lens_path = lens_file(scenario.camera.lens)
     if not lens_path.exists():
         lens_path = _temporary_lens_table(config)
         notes.append(f"{scenario.camera.lens} missing: the simulator's ground-truth table was used")
     return SimSession(rig, lens_path, notes)
+
+
+def optics_model(scenario: Scenario) -> str:
+    """The simulator optics model the scenario's sessions render with."""
+    _, trajectory = scenario.expand()[0]
+    config, _ = sim_camera_config(scenario, trajectory, scenario.seeds[0])
+    return config.optics.model
 
 
 def lens_file(name_or_path: str) -> Path:
@@ -188,7 +203,7 @@ _LENS_CACHE: dict[int, Path] = {}
 
 
 def _temporary_lens_table(config: SimCameraConfig) -> Path:
-    key = hash(config.lens.model_dump_json()) ^ config.zoom_counts
+    key = hash((config.lens.model_dump_json(), config.optics.model_dump_json(), config.zoom_counts))
     if key not in _LENS_CACHE:
         handle = tempfile.NamedTemporaryFile(  # noqa: SIM115 - kept for the process lifetime
             "w", suffix=".toml", prefix="hil-lens-", delete=False

@@ -84,6 +84,10 @@ class LensConfig(_Model):
         return self
 
 
+# The optics models the simulator renders with (drivers/sim/optics.py, optics_aberrated.py).
+OpticsModelName = Literal["reference", "aberrated"]
+
+
 class OpticsModelConfig(_Model):
     """Which optics model renders the frames, and the parameters of the aberrated one.
 
@@ -93,7 +97,7 @@ class OpticsModelConfig(_Model):
     background wall, signal-dependent noise) — a lens the estimator was not tuned on.
     """
 
-    model: Literal["reference", "aberrated"] = "reference"
+    model: OpticsModelName = "reference"
     # Transverse spherical aberration at the rim of the pupil, px (balanced against defocus so
     # that the smallest RMS spot is at the nominal focus). Assumption: a fast zoom at full
     # aperture, a caustic ring of ~2 px on one side of focus.
