@@ -76,12 +76,19 @@ def run(args: argparse.Namespace) -> int:
         f"{len(result.lines)} estimates from {len(reader)} frames -> {args.out}; "
         f"bursts accepted {result.accepted}, rejected {result.rejected}"
     )
+    for reason, n in result.reasons.items():
+        print(f"  {n} {reason}")
     if reader.truth is None:
         if args.summary is not None:
             print("dffd replay: no truth.csv in the recording; no summary written", file=sys.stderr)
     else:
         summary = summarize(
-            result.lines, reader.truth, settle, t0, bursts=(result.accepted, result.rejected)
+            result.lines,
+            reader.truth,
+            settle,
+            t0,
+            bursts=(result.accepted, result.rejected),
+            reasons=result.reasons,
         )
         print(format_table(summary))
         if args.summary is not None:
@@ -100,12 +107,18 @@ def run(args: argparse.Namespace) -> int:
 
 
 class ReplayResult:
-    """Estimate lines and burst counts of one replay."""
+    """Estimate lines and burst counts of one replay.
+
+    ``rejected`` counts every burst that gave no depth: fits the core rejected and bursts it
+    dropped before a fit (fewer than three frames with a focus cost); ``reasons`` counts each
+    reason (dropped ones as "dropped: …").
+    """
 
     def __init__(self) -> None:
         self.lines: list[dict[str, Any]] = []
         self.accepted = 0
         self.rejected = 0
+        self.reasons: dict[str, int] = {}
 
 
 def replay(
@@ -127,8 +140,13 @@ def replay(
                 result.accepted += 1
             else:
                 result.rejected += 1
+                reason = out.measurement.reason
+                result.reasons[reason] = result.reasons.get(reason, 0) + 1
         if out.estimate is not None:
             result.lines.append(estimate_line(out.estimate, step.track))
+    for reason, n in core.pipeline.burst_rejections.items():
+        result.rejected += n
+        result.reasons[f"dropped: {reason}"] = n
     return result
 
 
@@ -202,7 +220,9 @@ def summarize(
     truth: Truth,
     settle_s: float,
     t_start: float,
+    *,
     bursts: tuple[int, int],
+    reasons: dict[str, int] | None = None,
 ) -> dict[str, Any]:
     """The SUMMARY.json object of design.md §8 (``measured`` scored at each burst's mid-time)."""
     estimators: dict[str, Any] = {}
@@ -228,7 +248,7 @@ def summarize(
         "schema": SCHEMA,
         "settle_s": settle_s,
         "estimators": estimators,
-        "bursts": {"accepted": bursts[0], "rejected": bursts[1]},
+        "bursts": {"accepted": bursts[0], "rejected": bursts[1], "reasons": dict(reasons or {})},
     }
 
 
@@ -250,6 +270,7 @@ def format_table(summary: dict[str, Any]) -> str:
         f"bursts accepted {b['accepted']}, rejected {b['rejected']}; "
         f"steady state after {summary['settle_s']} s"
     )
+    rows.extend(f"  {n} {reason}" for reason, n in b.get("reasons", {}).items())
     return "\n".join(rows)
 
 

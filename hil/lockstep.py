@@ -418,6 +418,9 @@ class _Runner:
             limit = depth_rate_limit(self.sched_config, spacing)
             res.depth_limit_hz = limit.depth_hz
             res.extra["median_burst_half_span_counts"] = spacing
+        # bursts the core dropped before a fit (fewer than three frames with a cost), by reason
+        res.extra["burst_drops"] = dict(self.pipeline.burst_rejections)
+        res.extra["measure_fallbacks"] = self.pipeline.measure_fallbacks
         res.extra["scheduler"] = {
             "bursts_started": self.scheduler.stats.bursts_started,
             "bursts_completed": self.scheduler.stats.bursts_completed,

@@ -88,7 +88,6 @@ def build_report(
         baselines[key] = series_summary(results, "baselines", key)
     duration = sum(r.duration_s for r in results)
     accepted = sum(r.accepted_bursts for r in results)
-    rejected = sum(len(r.bursts) - r.accepted_bursts for r in results)
     depth_hz = accepted / duration if duration > 0 else 0.0
     limit = _mean([r.depth_limit_hz for r in results])
     sweep_hz = _mean([r.full_sweep_depth_hz for r in results])
@@ -134,7 +133,7 @@ def build_report(
         "best": best,
         "estimators": estimators,
         "baselines": baselines,
-        "bursts": {"accepted": accepted, "rejected": rejected},
+        "bursts": burst_counts(results),
         "seeds": seed_spread(results),
         "rates": rates,
         "latency": latency,
@@ -149,6 +148,27 @@ def build_report(
     if bench is not None:
         report["bench"] = bench
     return report
+
+
+def burst_counts(results: Sequence[RunResult]) -> dict[str, Any]:
+    """Accepted fits, and every burst that gave no depth with its reason: fits the core rejected
+    (``rejected``) and bursts it dropped before a fit (``dropped``, "dropped: …" in ``reasons``);
+    ``measure_fallbacks``: bursts fitted with cost (2) instead of the configured measure."""
+    reasons: dict[str, int] = {}
+    for r in results:
+        for b in r.bursts:
+            if not b.accepted:
+                reasons[b.reason] = reasons.get(b.reason, 0) + 1
+    drops = _sum_dicts([r.extra.get("burst_drops", {}) for r in results])
+    for reason, n in drops.items():
+        reasons[f"dropped: {reason}"] = n
+    return {
+        "accepted": sum(r.accepted_bursts for r in results),
+        "rejected": sum(len(r.bursts) - r.accepted_bursts for r in results),
+        "dropped": sum(drops.values()),
+        "reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
+        "measure_fallbacks": sum(r.extra.get("measure_fallbacks", 0) for r in results),
+    }
 
 
 def seed_spread(results: Sequence[RunResult]) -> dict[str, Any]:
@@ -397,6 +417,19 @@ def format_table(report: dict[str, Any]) -> str:
                 _num(b["acceleration_rms_m_s2"] * 1e3, "{:.0f}"),
                 _num(w["bias_rad_s"], "{:+.4f}"),
                 _num(w["rms_rad_s"], "{:.4f}"),
+            )
+        )
+    bursts = report["bursts"]
+    if "reasons" in bursts:
+        why = "; ".join(f"{n} {reason}" for reason, n in bursts["reasons"].items())
+        lines.append(
+            f"bursts: {bursts['accepted']} accepted, {bursts['rejected']} rejected, "
+            f"{bursts['dropped']} dropped"
+            + (f" ({why})" if why else "")
+            + (
+                f"; {n} fitted with cost (2) (fallback)"
+                if (n := bursts["measure_fallbacks"])
+                else ""
             )
         )
     if (sp := report.get("seeds")) and sp["n"] >= 2:

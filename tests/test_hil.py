@@ -101,7 +101,13 @@ def test_short_fast_run_reports_sane_accuracy(short_run: tuple[Path, dict]) -> N
         assert block["rms_m"] < 0.05, name
     assert est["lpv"]["n"] > est["measured"]["n"]  # estimates per frame, measurements per burst
     assert report["best"] == "lpv"
-    assert report["bursts"]["accepted"] >= 2
+    bursts = report["bursts"]
+    assert bursts["accepted"] >= 2
+    # every burst without a depth is counted with its reason (fits rejected, bursts dropped)
+    reasons = bursts["reasons"]
+    assert bursts["rejected"] + bursts["dropped"] == sum(reasons.values())
+    assert bursts["dropped"] == sum(n for r, n in reasons.items() if r.startswith("dropped: "))
+    assert bursts["measure_fallbacks"] == 0  # the default measure is the paper's cost (2)
 
 
 def test_each_baseline_yields_numbers(short_run: tuple[Path, dict]) -> None:

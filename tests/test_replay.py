@@ -120,3 +120,31 @@ def test_replay_reports_a_bad_config(run_dir: Path, tmp_path: Path) -> None:
     conf.write_text("[estimators]\nsigma_psi = -1\n", "utf-8")
     code = main(["replay", str(run_dir), "--out", str(tmp_path / "e.jsonl"), "--config", str(conf)])
     assert code == 2
+
+
+def test_replay_counts_every_burst_without_a_depth_with_its_reason(run_dir: Path) -> None:
+    """A burst that lost a frame is dropped before the fit: replay counts it as rejected, by
+    reason (it used to be missing from the summary: 'rejected 0' with bursts dropped)."""
+    from dffd.core.lens import Lens
+    from dffd.recording import RecordingReader
+    from dffd.replay import replay, summarize
+
+    reader = RecordingReader(run_dir)
+    lens = Lens.from_meta(reader.meta["lens"])
+    config = pipeline_config(DffdConfig())
+    # every third burst loses its middle frame (as when the capture drops it)
+    frames = [
+        (frame, tag)
+        for frame, tag in reader
+        if not (tag.burst is not None and tag.burst[1] == 1 and tag.burst[0] % 3 == 0)
+    ]
+    result = replay(frames, lens, config)
+    dropped = result.reasons.get("dropped: 2 of 3 frames with a focus cost", 0)
+    assert dropped >= 3
+    assert result.rejected == sum(result.reasons.values())
+    assert reader.truth is not None
+    summary = summarize(
+        result.lines, reader.truth, 3.0, 0.0, bursts=(result.accepted, result.rejected),
+        reasons=result.reasons,
+    )  # fmt: skip
+    assert summary["bursts"]["reasons"]["dropped: 2 of 3 frames with a focus cost"] == dropped
