@@ -30,6 +30,7 @@ from dffd.mqtt.models import (
     Estimate,
     Fit,
     Measurement,
+    MqttHealth,
     Status,
     Truth,
     parse_command,
@@ -292,6 +293,27 @@ async def test_data_flows_with_retained_online_and_offline_status(mosquitto: Mos
         message = await late.next()
         assert message.retain
         assert json.loads(message.payload)["availability"] == "offline"  # type: ignore[arg-type]
+
+
+async def test_a_status_sent_over_mqtt_says_mqtt_connected(mosquitto: Mosquitto) -> None:
+    # The daemon builds its first status before the connection is up (connected false); what a
+    # subscriber receives over that very connection must say connected (issue 13).
+    before = Status(
+        availability="online", t=time.time(), t_mono=time.monotonic(), version="0.1.0",
+        state="acquiring", mqtt=MqttHealth(connected=False),
+    )  # fmt: skip
+    publisher = Publisher(settings(mosquitto), TOPICS)
+    publisher.publish(before)
+    async with publisher:
+        async with asyncio.timeout(MESSAGE_TIMEOUT_S):
+            await publisher.wait_connected()
+        async with subscribed(mosquitto, TOPICS.status) as sub:
+            first = await sub.next_json(TOPICS.status)  # the retained one, sent on connect
+            assert first["availability"] == "online"
+            assert first["mqtt"]["connected"] is True
+            publisher.publish(before.model_copy(update={"t_mono": time.monotonic()}))
+            queued = await sub.next_json(TOPICS.status)
+            assert queued["mqtt"]["connected"] is True
 
 
 async def test_last_will_marks_killed_client_offline(mosquitto: Mosquitto) -> None:

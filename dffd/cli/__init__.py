@@ -95,6 +95,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return cast(int, _resolve(args._implementation)(args))
     except KeyboardInterrupt:
+        # Ctrl-C before the subcommand could handle it (e.g. `dffd run` still loading).
+        print(f"\ndffd {args.command}: interrupted (exit {EXIT_INTERRUPTED})", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

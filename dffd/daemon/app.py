@@ -33,11 +33,14 @@ predicted path, then returns to where it was last seen, while the core keeps sea
 :mod:`dffd.scheduler`).
 
 Shutdown (SIGTERM/SIGINT): stop pan/tilt, publish the retained ``offline`` status, flush the
-JSONL log, exit 0 — all within :data:`SHUTDOWN_TIMEOUT_S`. sd_notify READY is sent once the
-camera is initialised and frames flow; WATCHDOG pings come from the status task only while
-frames flow.
+JSONL log, say so on the console, exit 0 — all within :data:`SHUTDOWN_TIMEOUT_S`. On a
+terminal the daemon takes the foreground process group while it runs
+(:mod:`dffd.cli.terminal`), so Ctrl-C under ``make run`` stops dffd alone and make returns 0.
+sd_notify READY is sent once the camera is initialised and frames flow; WATCHDOG pings come
+from the status task only while frames flow.
 
-Exit codes: 0 clean stop, 1 runtime failure (camera, broker, capture, log), 2 configuration.
+Exit codes: 0 clean stop, 1 runtime failure (camera, broker, capture, log), 2 configuration,
+130 interrupted while still loading (before the daemon could stop in order).
 """
 
 from __future__ import annotations
@@ -142,10 +145,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"dffd run: --sim-faults: {exc}", file=sys.stderr)
         return EXIT_USAGE
     daemon = Daemon(config, live_console=live, duration_s=args.duration, sim_faults=faults)
-    try:
-        return asyncio.run(daemon.main())
-    except KeyboardInterrupt:
-        return EXIT_OK
+    from dffd.cli.terminal import own_foreground
+
+    with own_foreground():
+        try:
+            return asyncio.run(daemon.main())
+        except KeyboardInterrupt:
+            return EXIT_OK
 
 
 # -- the daemon -----------------------------------------------------------------------------------
@@ -195,33 +201,62 @@ class Daemon:
         self._sched_config: SchedulerConfig | None = None
         self.dashboard: Dashboard | None = None
         self._web: WebSettings | None = None
+        self.board.known_size_m = config.target.known_size_m
+        self.stop_reason: str | None = None  # what stopped the run (for the farewell)
+        self.shutdown_problems: list[str] = []  # what did not go as it should at shutdown
 
     # -- lifecycle ------------------------------------------------------------------------------
     async def main(self) -> int:
         """Start everything, run until stopped, shut down; return the exit code."""
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, self.request_stop)
+        for sig, reason in ((signal.SIGTERM, "SIGTERM"), (signal.SIGINT, "Ctrl-C (SIGINT)")):
+            loop.add_signal_handler(sig, self.request_stop, reason)
         code = EXIT_OK
+        errors: list[str] = []
         try:
             with self.console:
-                await self._run()
-        except* DaemonError as group:
-            for error in group.exceptions:
-                _LOGGER.error("%s", error)
-            code = EXIT_FAILURE
-        except* (ViscaError, FrameSourceError, JsonlLogError, OSError) as failures:
-            for failure in failures.exceptions:
-                _LOGGER.error("dffd stopped: %s", failure)
-            code = EXIT_FAILURE
+                try:
+                    await self._run()
+                except* DaemonError as group:
+                    errors += [str(error) for error in group.exceptions]
+                    for error in group.exceptions:
+                        _LOGGER.error("%s", error)
+                    code = EXIT_FAILURE
+                except* (ViscaError, FrameSourceError, JsonlLogError, OSError) as failures:
+                    errors += [str(failure) for failure in failures.exceptions]
+                    for failure in failures.exceptions:
+                        _LOGGER.error("dffd stopped: %s", failure)
+                    code = EXIT_FAILURE
+            self.console.farewell(self.farewell(code, errors, time.monotonic()))
         finally:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.remove_signal_handler(sig)
         return code
 
-    def request_stop(self) -> None:
+    def farewell(self, code: int, errors: list[str], now: float) -> str:
+        """The last line of a run: why it stopped, what it did, whether shutdown was clean."""
+        ran = now - self.board.t_start
+        done = (
+            f"after {ran:.0f} s: {self.board.estimates.count} estimates, "
+            f"{self.board.measurements.count} depth measurements"
+        )
+        if code != EXIT_OK:
+            return f"dffd failed {done}: {'; '.join(errors) or 'see the log above'} (exit {code})"
+        why = self.stop_reason or "request"
+        if self.shutdown_problems:
+            return (
+                f"dffd stopped on {why} {done}, with problems: "
+                f"{'; '.join(self.shutdown_problems)} (exit {code})"
+            )
+        return (
+            f"dffd stopped cleanly on {why} {done}; pan/tilt stopped, retained status "
+            f"'offline' published, log flushed (exit {code})"
+        )
+
+    def request_stop(self, reason: str = "request") -> None:
         """Begin an orderly shutdown (signal handler; idempotent)."""
         if not self.stop_requested.is_set():
+            self.stop_reason = reason
             _LOGGER.info("stop requested: stopping pan/tilt, publishing offline, flushing")
             self.notifier.stopping("shutting down")
             # The bound on shutdown: whatever hangs (a dead broker, a stuck port), exit anyway.
@@ -354,7 +389,7 @@ class Daemon:
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(self.duration_s):
                 await self.stop_requested.wait()
-        self.request_stop()
+        self.request_stop(f"--duration {self.duration_s:g} s")
 
     async def _shutdown_camera(self, camera: Camera) -> None:
         try:
@@ -363,6 +398,7 @@ class Daemon:
             _LOGGER.info("pan/tilt stopped")
         except (ViscaError, TimeoutError) as exc:
             _LOGGER.warning("could not stop pan/tilt at shutdown: %s", exc)
+            self.shutdown_problems.append(f"pan/tilt not stopped ({exc or 'timeout'})")
         await self._source_close()
 
     async def _source_close(self) -> None:
@@ -373,6 +409,8 @@ class Daemon:
                     await source.close()
 
     async def _shutdown_publisher(self, publisher: Publisher, task: asyncio.Task[None]) -> None:
+        if not publisher.connected:
+            self.shutdown_problems.append("MQTT not connected, so 'offline' was not published")
         publisher.publish(publisher.status_payload("offline", "stopped"))
         await publisher.stop()
         if not task.done():
@@ -382,6 +420,7 @@ class Daemon:
         log = self._parts.log
         if log is not None and not await log.aclose():
             _LOGGER.error("JSONL log did not flush in time; the last records may be missing")
+            self.shutdown_problems.append("JSONL log not flushed in time")
 
     # -- tasks ---------------------------------------------------------------------------------
     async def _capture_loop(self, source: FrameSource) -> None:
@@ -514,7 +553,10 @@ class Daemon:
         commands = self._commands
         if commands is None:
             raise CommandRejected("the daemon is still starting; retry in a few seconds")
-        return await commands.execute(command)
+        result = await commands.execute(command)
+        if isinstance(command, models.SetKnownSize):
+            self.board.known_size_m = command.size_m
+        return result
 
     def _acquired(self, roi: tuple[int, int, int, int] | None) -> None:
         self._set_roi(roi)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import TYPE_CHECKING
 
@@ -51,6 +52,8 @@ class StatusBoard:
         self.last_truth_z: float | None = None
         self.last_size: float | None = None
         self.spacing = DEFAULT_SPACING_COUNTS  # half the burst bracket (counts), for the limit
+        self.known_size_m: float | None = None  # what CF1 is told (config or set_known_size)
+        self.last_measured: tuple[float, float] | None = None  # (monotonic, z_m) of a burst
 
     def on_frame(self, now: float) -> None:
         """A frame was delivered at ``now``."""
@@ -61,6 +64,8 @@ class StatusBoard:
         """The core closed a burst."""
         if measurement.accepted:
             self.bursts_accepted += 1
+            if measurement.z_m is not None and math.isfinite(measurement.z_m):
+                self.last_measured = (now, float(measurement.z_m))
         else:
             self.bursts_rejected += 1
         self.measurements.add(now)
@@ -82,6 +87,7 @@ class StatusBoard:
         self.message = "released by command: no depths until an acquire command"
         self.last_estimate_mono = None
         self.last_depth = {}
+        self.last_measured = None
 
     def estimate_age(self, now: float) -> float | None:
         """Seconds since the last published estimate (None: none since start or release)."""
@@ -137,6 +143,13 @@ class StatusBoard:
     ) -> ConsoleSnapshot:
         """The console's view of ``status`` and the board."""
         rates, link, mqtt, drops = status.rates, status.link, status.mqtt, status.drops
+        depth_m = dict(self.last_depth)
+        measured_age_s = None
+        if self.last_measured is not None:
+            # Depth measurements come per burst (~2 Hz), so the estimate of the moment rarely
+            # carries one: show the last accepted one with its age instead of a bare dash.
+            measured_age_s = max(0.0, now - self.last_measured[0])
+            depth_m["measured"] = self.last_measured[1]
         assert rates is not None
         assert link is not None
         assert mqtt is not None
@@ -159,13 +172,15 @@ class StatusBoard:
             bursts_accepted=self.bursts_accepted,
             bursts_rejected=self.bursts_rejected,
             roles=roles,
-            depth_m=self.last_depth,
+            depth_m=depth_m,
+            measured_age_s=measured_age_s,
             last_estimate_age_s=status.last_estimate_age_s,
             best=self.best,
             truth_z_m=self.last_truth_z,
             size_m=self.last_size,
             pan_deg=pan_tilt_deg[0],
             tilt_deg=pan_tilt_deg[1],
+            known_size_m=self.known_size_m,
         )
 
 

@@ -285,19 +285,27 @@ class Publisher:
         """A snapshot of the counters."""
         return PublisherStats(connected=self.connected, backlog=len(self._backlog), **self._counts)
 
-    def health(self) -> MqttHealth:
-        """The ``mqtt`` block of a Status payload."""
+    def health(self, *, connected: bool | None = None) -> MqttHealth:
+        """The ``mqtt`` block of a Status payload (``connected`` overrides the current flag)."""
         return MqttHealth(
-            connected=self.connected,
+            connected=self.connected if connected is None else connected,
             reconnects=max(0, self._counts["connects"] - 1),
             published=self._counts["published"],
             replayed=self._counts["replayed"],
             backlog=len(self._backlog),
         )
 
-    def status_payload(self, availability: Availability, message: str | None = None) -> Status:
-        """The latest Status with ``availability`` (a minimal one if none was published)."""
+    def status_payload(
+        self,
+        availability: Availability,
+        message: str | None = None,
+        *,
+        connected: bool | None = None,
+    ) -> Status:
+        """The latest Status with ``availability`` (a minimal one if none was published);
+        ``connected`` overrides the ``mqtt.connected`` flag (see :meth:`health`)."""
         now_wall, now_mono = wall_time(), time.monotonic()
+        health = self.health(connected=connected)
         if self._latest_status is None:
             return Status(
                 availability=availability,
@@ -305,14 +313,14 @@ class Publisher:
                 t_mono=now_mono,
                 camera=self.topics.camera,
                 version=self._version,
-                mqtt=self.health(),
+                mqtt=health,
                 message=message,
             )
         update: dict[str, Any] = {
             "availability": availability,
             "t": now_wall,
             "t_mono": now_mono,
-            "mqtt": self.health(),
+            "mqtt": health,
         }
         if availability == "offline":
             update |= {"state": None, "message": message}
@@ -387,7 +395,8 @@ class Publisher:
 
     async def _on_connect(self, client: aiomqtt.Client) -> None:
         """Online status, command subscription, backlog replay — then open for live traffic."""
-        online = self.status_payload("online")
+        # Sent over this connection, so it says connected (the flag is set only after replay).
+        online = self.status_payload("online", connected=True)
         await client.publish(
             self.topics.status,
             online.to_json(),
@@ -474,9 +483,14 @@ class Publisher:
                 self._outbox.task_done()
 
     async def _send(self, client: aiomqtt.Client, item: _Outgoing) -> None:
+        payload = item.payload
+        if isinstance(payload, Status):
+            # A status is built before it is sent (possibly before this connection existed):
+            # its mqtt block says what holds as it goes out over this connection.
+            payload = payload.model_copy(update={"mqtt": self.health(connected=True)})
         await client.publish(
             self.topics.name(item.kind),
-            item.payload.to_json(),
+            payload.to_json(),
             qos=qos(item.kind),
             retain=retained(item.kind),
             timeout=PUBLISH_TIMEOUT_S,
