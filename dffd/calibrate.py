@@ -40,6 +40,7 @@ import argparse
 import asyncio
 import itertools
 import logging
+import math
 import sys
 import time
 from collections.abc import Awaitable, Callable
@@ -61,6 +62,13 @@ _LOGGER = logging.getLogger(__name__)
 
 
 DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 10.0, 20.0)
+# The contour must fit the tracker's radius range with room to spare: at most this fraction of
+# TrackerConfig.max_radius_px (its normals search ±search_px beyond the edge, and a target that
+# nearly fills the frame leaves the background too little area for the threshold), at least
+# MIN_RADIUS_MARGIN × min_radius_px (a few-pixel blob gives a noisy focus cost).
+MAX_RADIUS_FRACTION = 0.9
+MIN_RADIUS_MARGIN = 1.5
+DEPTH_STEP_M = 0.1  # a default depth the target is too large at moves out to a multiple of this
 COARSE_POINTS = 33  # focus settings of the coarse sweep over the whole range
 FINE_POINTS = 17  # … of the fine sweep around the coarse minimum (± two coarse steps)
 FIT_HALF_WIDTH = 3  # points either side of the minimum used for the vertex fit
@@ -141,6 +149,15 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if args.sim:
         sim_rig = SimRig(args.sim_config or reference_camera_file())
+        if args.depths is None:
+            depths = sim_rig.usable_depths(DEFAULT_DEPTHS_M)
+            print(
+                f"depths: {', '.join(f'{z:g}' for z in depths)} m (where the simulated target fits)"
+            )
+        unusable = [sim_rig.why_unusable(z) for z in depths]
+        if len(depths) < 2 or any(unusable):
+            print(f"dffd calibrate: {'; '.join(u for u in unusable if u)}", file=sys.stderr)
+            return EXIT_USAGE
         return asyncio.run(_calibrate_and_report(sim_rig, depths, args))
     try:
         config = load_config(args.config)
@@ -169,18 +186,19 @@ async def sharpest(rig: Rig, z_m: float, settle_frames: int) -> DepthPoint:
     """Sweep the focus with the target at ``z_m``; the sharpest counts and its v."""
     lo, hi = rig.focus_range
     coarse = np.linspace(lo, hi, COARSE_POINTS)
-    costs = await _costs(rig, coarse, settle_frames)
+    costs, sizes = await _costs(rig, coarse, settle_frames)
     if not np.isfinite(costs).any():
-        raise CalibrationError(
-            f"target not found at {z_m} m at any focus; check that it is in view and lit"
-        )
+        raise CalibrationError(f"target not found at {z_m} m at any focus; " + _why_not(sizes))
     best = float(coarse[int(np.nanargmin(costs))])
     step = (hi - lo) / (COARSE_POINTS - 1)
     fine = np.linspace(max(lo, best - 2 * step), min(hi, best + 2 * step), FINE_POINTS)
-    fine_costs = await _costs(rig, fine, settle_frames)
+    fine_costs, fine_sizes = await _costs(rig, fine, settle_frames)
     ok = np.isfinite(fine_costs)
     if ok.sum() < 3:
-        raise CalibrationError(f"target not measurable at {z_m} m; check the scene")
+        raise CalibrationError(
+            f"target not measurable at {z_m} m (a contour at {ok.sum()} of {FINE_POINTS} "
+            "settings around the sharpest); " + _why_not(sizes + fine_sizes)
+        )
     counts = round(vertex(fine[ok], fine_costs[ok]))
     f = rig.focal_length_mm
     z = z_m * MM_PER_M
@@ -281,6 +299,43 @@ class SimRig:
         self._frame = 0  # frame index of the next render
         self._rig: Any = None  # drivers.sim.rig.SimCamera of the current target placement
         self._z_m = 3.0
+
+    def radius_px(self, z_m: float) -> float:
+        """The simulated target's image size r = f R / z (pixels) at ``z_m``."""
+        image_mm = self.focal_length_mm * self.config.world.target.size_m / z_m
+        return image_mm / self.pixel_pitch_mm
+
+    def why_unusable(self, z_m: float) -> str | None:
+        """Why the simulated target cannot be calibrated on at ``z_m`` (None: it can)."""
+        limits = TrackerConfig()
+        near = self.config.lens.near_focus_m
+        r = self.radius_px(z_m)
+        if z_m < near:
+            return f"{z_m:g} m is nearer than the lens focuses ({near:g} m)"
+        if r > MAX_RADIUS_FRACTION * limits.max_radius_px:
+            return (
+                f"at {z_m:g} m the simulated {self.config.world.target.size_m * MM_PER_M:g} mm "
+                f"target is {r:.0f} px in radius, more than the tracker takes with margin "
+                f"({MAX_RADIUS_FRACTION * limits.max_radius_px:.0f} px)"
+            )
+        if r < MIN_RADIUS_MARGIN * limits.min_radius_px:
+            return f"at {z_m:g} m the simulated target is only {r:.1f} px in radius"
+        return None
+
+    def usable_depths(self, wanted: tuple[float, ...]) -> list[float]:
+        """``wanted``, each depth nearer than the target fits moved out to the first usable
+        multiple of :data:`DEPTH_STEP_M`, and depths where it is too small dropped."""
+        limits = TrackerConfig()
+        size_mm = self.config.world.target.size_m * MM_PER_M
+        largest_px = MAX_RADIUS_FRACTION * limits.max_radius_px
+        # r = f R / (z p) <= largest_px, and the lens focuses no nearer than near_focus_m.
+        nearest = max(
+            self.config.lens.near_focus_m,
+            self.focal_length_mm * size_mm / (largest_px * self.pixel_pitch_mm) / MM_PER_M,
+        )
+        nearest = math.ceil(nearest / DEPTH_STEP_M - 1e-9) * DEPTH_STEP_M
+        moved = {round(max(z, nearest), 6) for z in wanted}
+        return sorted(z for z in moved if self.why_unusable(z) is None)
 
     async def place_target(self, z_m: float) -> None:
         """A fresh simulated session with the target at ``z_m``."""
@@ -491,20 +546,50 @@ async def _ask_operator(text: str) -> None:
     await asyncio.to_thread(input, text)
 
 
-async def _costs(rig: Rig, settings: npt.NDArray[np.float64], settle: int) -> npt.NDArray[Any]:
+async def _costs(
+    rig: Rig, settings: npt.NDArray[np.float64], settle: int
+) -> tuple[npt.NDArray[Any], list[float]]:
+    """The focus cost at each setting (NaN: no contour), and the radii (px) of the blobs
+    found where the contour could not start (to say why)."""
     out = np.full(len(settings), np.nan)
     tracker = ContourTracker(TrackerConfig())
+    refused: list[float] = []
     for i, c in enumerate(settings):
         gray = await rig.frame_at(round(float(c)), settle)
         t = float(i)
         poly = find_target(gray)
-        if poly is None or not tracker.start(gray, poly, t):
+        if poly is None:
+            continue
+        if not tracker.start(gray, poly, t):
+            refused.append(_radius_px(poly))
             continue
         obs = tracker.update(gray, t, "translation")
         cost = focus_cost(obs.peak_sq)
         if cost is not None:
             out[i] = cost[0]
-    return out
+    return out, refused
+
+
+def _radius_px(poly: npt.NDArray[np.float64]) -> float:
+    """The size measure r = sqrt(tr Σ) of a boundary polygon, in pixels."""
+    pts = np.asarray(poly, dtype=np.float64)
+    return float(np.sqrt(np.trace(np.cov(pts.T, bias=True))))
+
+
+def _why_not(refused_radii: list[float]) -> str:
+    limits = TrackerConfig()
+    if refused_radii and max(refused_radii) > limits.max_radius_px:
+        return (
+            f"a blob of radius {max(refused_radii):.0f} px was seen, larger than the tracker "
+            f"takes ({limits.max_radius_px:.0f} px): place the target further away or use a "
+            "smaller one"
+        )
+    if refused_radii:
+        return (
+            f"a blob of radius {max(refused_radii):.0f} px was seen but its edge could not be "
+            "followed: check the lighting and that the target is the only high-contrast object"
+        )
+    return "check that it is in view, centred and lit"
 
 
 def _lens_meta(optics: object, zoom_counts: int) -> dict[str, object]:

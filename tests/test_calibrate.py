@@ -89,6 +89,38 @@ def test_cli_writes_a_loadable_lens_file(tmp_path: Path) -> None:
     assert run(parser.parse_args(["--depths", "2,5"])) == 2  # neither --sim nor --config
 
 
+def test_sim_runs_with_its_own_defaults(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # `dffd calibrate --sim` with no --depths: the standard set, moved out where the simulated
+    # 35.76 mm target is larger than the tracker takes (1.0 m: 222 px in radius).
+    parser = argparse.ArgumentParser()
+    configure_calibrate(parser)
+    out = tmp_path / "lens.toml"
+    assert run(parser.parse_args(["--sim", "--out", str(out)])) == 0
+    printed = capsys.readouterr().out
+    assert "depths: 1.2, 1.5, 2, 3, 4.5, 7, 10, 20 m" in printed
+    lens = Lens.from_toml(out)
+    assert len(lens.focus_counts) == 8
+    for z in (1.5, 3.0, 7.0):
+        got = lens.depth_from_v(lens.v_from_counts(TRUTH.counts_for_depth(z)))
+        assert got == pytest.approx(z, rel=0.03)
+
+
+async def test_a_target_too_large_for_the_tracker_is_named_as_such() -> None:
+    rig = SimRig(reference_camera_file())
+    await rig.place_target(1.0)
+    with pytest.raises(CalibrationError, match="larger than the tracker takes"):
+        await sharpest(rig, 1.0, settle_frames=3)
+
+
+def test_sim_depths_where_the_target_does_not_fit_are_refused_up_front(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    parser = argparse.ArgumentParser()
+    configure_calibrate(parser)
+    assert run(parser.parse_args(["--sim", "--depths", "1,3"])) == 2  # refused up front
+    assert "at 1 m the simulated 35.76 mm target is 222 px in radius" in capsys.readouterr().err
+
+
 def test_lab_mode_needs_a_visca_camera_and_a_video_device(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -115,7 +115,9 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument(
         "--depths", default=None, metavar="Z1,Z2,…",
-        help="known target depths in metres (default: the standard set, 1 m to 20 m)",
+        help="known target depths in metres (default: the standard set 1,1.5,2,3,4.5,7,10,20; "
+        "with --sim each depth moved out to where the simulated target fits the tracker: "
+        "1.2 m to 20 m)",
     )  # fmt: skip
     parser.add_argument("--out", type=Path, metavar="FILE", help="write the lens TOML here")
     parser.add_argument("--name", default="calibrated", help="lens name in the TOML file")
