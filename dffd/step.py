@@ -4,9 +4,11 @@ The daemon's estimator thread, the lock-step bench and ``dffd replay`` all proce
 :meth:`CoreStep.step`, so the estimates a user gets from the service are the ones the bench
 scores and a replay reproduces. Pure and synchronous: no I/O, no clock.
 
-Every frame with an estimate also steps the 3D trackers (:mod:`dffd.core.tracking3d`): the
-measurement is the estimate's world position with the covariance of its direction and depth
-(docs/tracking3d.md). The service runs ``("mmae",)``; the bench adds ``"imm"`` and ``"cv"``.
+Every frame with an estimate also steps the 3D trackers (:mod:`dffd.core.tracking3d`) on the
+raw channels the depth filters fuse (:mod:`dffd.core.track_feed`): the target's direction and
+image size on the frame, and each accepted burst's depth times the image size at its time — not
+the fused depth, whose errors are correlated from frame to frame (docs/tracking3d.md). The service
+runs ``("mmae",)``; the bench adds ``"imm"`` and ``"cv"``.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dffd.core.pipeline import Estimate, Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.track_feed import FeedFrame, SizeFeed
 from dffd.core.tracking3d import (
     CameraModel,
     DirectionDepth,
@@ -92,6 +95,7 @@ class CoreStep:
     ) -> None:
         self.pipeline = pipeline
         self.trackers = Tracker3DBank(trackers)
+        self._feed = SizeFeed(next(iter(self.trackers.trackers.values())).config)
         self._camera: CameraModel | None = None
 
     @classmethod
@@ -130,17 +134,27 @@ class CoreStep:
 
     def _track(self, frame: Frame, out: PipelineOutput) -> dict[str, Track3DEstimate]:
         """Step the 3D trackers on a frame with an estimate (a new target forgets the track)."""
+        m = out.measurement
+        if m is not None and m.accepted and m.z_m is not None and m.sigma_m is not None:
+            # z_m is the depth at the burst's mid-time plus the pipeline's measured offset.
+            t_eff = m.t + self.pipeline.config.measurement_time_offset_s
+            self._feed.burst(t_eff, m.z_m, m.sigma_m)
         est = out.estimate
         if est is None:
             if self.pipeline.state in ("idle", "acquiring"):
                 self.trackers.reset()  # released, or told to acquire: the next target is new
+                self._feed.reset()
             return {}
-        return self.trackers.step(est.t, self._measurement(frame, est))
+        if est.z_m is None or est.size_m is None or not est.z_m > 0.0:
+            return self.trackers.step_size(est.t, None)  # no size yet: predict (if a track)
+        # s = r·pitch/F of this frame; the pipeline publishes R̂ = ẑ s, so s = R̂/ẑ exactly.
+        s = est.size_m / est.z_m
+        feed = FeedFrame(est.t, est.centroid_px, est.pan_deg, est.tilt_deg, s)
+        unit, size = self._feed.frame(feed, self._camera_for(frame))
+        return self.trackers.step_size(est.t, unit, size)
 
-    def _measurement(self, frame: Frame, est: Estimate) -> tuple[FloatArray, FloatArray] | None:
-        """The estimate's world position and its covariance; None without depth or σ."""
-        if est.position_world_m is None or est.z_m is None or est.sigma_m is None:
-            return None
+    def _camera_for(self, frame: Frame) -> CameraModel:
+        """The camera model of the frame's size (cached)."""
         h, w = frame.image.shape[:2]
         camera = self._camera
         if camera is None or camera.principal_point_px != ((w - 1) / 2.0, (h - 1) / 2.0):
@@ -151,6 +165,16 @@ class CoreStep:
             camera = self._camera = CameraModel.centred(
                 (w, h), lens.pixel_pitch_mm, lens.focal_length_mm
             )
+        return camera
+
+    def fused_measurement(
+        self, frame: Frame, est: Estimate
+    ) -> tuple[FloatArray, FloatArray] | None:
+        """The estimate's world position (fused depth) and its covariance; None without depth or
+        σ — the trackers' input before the size feed, kept for comparison."""
+        if est.position_world_m is None or est.z_m is None or est.sigma_m is None:
+            return None
+        camera = self._camera_for(frame)
         meas = DirectionDepth(
             est.centroid_px, est.pan_deg, est.tilt_deg, est.z_m, max(est.sigma_m, 1e-6)
         )

@@ -20,16 +20,24 @@ from dffd.core.motion_models import (
     CoordinatedTurn,
     kinematic_turn_rate,
 )
+from dffd.core.track_feed import FeedFrame, SizeFeed
 from dffd.core.tracking3d import (
+    SIZE,
+    TRACK_DIM,
     TRACKER_KINDS,
     CameraModel,
     DirectionDepth,
+    DirectionSize,
     Track3DEstimate,
     Tracker3D,
+    Tracker3DConfig,
+    _size_update,
+    _unit_update,
     cartesian_measurement,
     imm_mix,
     markov_matrix,
     mmae_probabilities,
+    unit_size_point,
 )
 
 FloatArray = np.ndarray
@@ -437,3 +445,102 @@ def test_tracker_is_deterministic_and_restarts_after_a_gap() -> None:
     assert empty.step(0.0, None) is None
     with pytest.raises(ValueError, match="camera model"):
         empty.step(0.0, meas)
+
+
+# -- size-state measurements (direction and image size; burst sizes) --------------------------
+
+
+def _generic_update(
+    x: FloatArray, p: FloatArray, h: FloatArray, y: FloatArray, r: FloatArray
+) -> tuple[FloatArray, FloatArray, float]:
+    """Textbook Kalman update with an explicit H (the reference for the structured ones)."""
+    s = h @ p @ h.T + r
+    k = p @ h.T @ np.linalg.inv(s)
+    nu = y - h @ x
+    ikh = np.eye(len(x)) - k @ h
+    p_new = ikh @ p @ ikh.T + k @ r @ k.T
+    _, logdet = np.linalg.slogdet(s)
+    loglik = -0.5 * (nu @ np.linalg.solve(s, nu) + logdet + len(y) * math.log(2 * math.pi))
+    return x + k @ nu, p_new, float(loglik)
+
+
+def _random_state(seed: int) -> tuple[FloatArray, FloatArray]:
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=TRACK_DIM)
+    x[SIZE] = 0.036
+    a = rng.normal(size=(TRACK_DIM, TRACK_DIM)) * 0.1
+    return x, a @ a.T + np.eye(TRACK_DIM) * 1e-3
+
+
+def test_unit_size_update_is_the_kalman_update_of_p_minus_r_m() -> None:
+    x, p = _random_state(3)
+    m = np.array([10.0, -2.0, 150.0])
+    sigma_m = np.diag([4.0, 3.0, 900.0]) * 1e-2
+    h = np.zeros((3, TRACK_DIM))
+    h[:, :3] = np.eye(3)
+    h[:, SIZE] = -m
+    ref = _generic_update(x, p, h, np.zeros(3), x[SIZE] ** 2 * sigma_m)
+    got = _unit_update(x, p, m, sigma_m)
+    np.testing.assert_allclose(got[0], ref[0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got[1], ref[1], rtol=1e-8, atol=1e-12)
+    assert got[2] == pytest.approx(ref[2], rel=1e-9)
+
+
+def test_size_update_is_the_scalar_kalman_update_of_every_model() -> None:
+    (x0, p0), (x1, p1) = _random_state(4), _random_state(5)
+    h = np.zeros((1, TRACK_DIM))
+    h[0, SIZE] = 1.0
+    xs, ps = _size_update(np.stack([x0, x1]), np.stack([p0, p1]), 0.0365, 4e-8)
+    for x, p, xn, pn in ((x0, p0, xs[0], ps[0]), (x1, p1, xs[1], ps[1])):
+        ref = _generic_update(x, p, h, np.array([0.0365]), np.array([[4e-8]]))
+        np.testing.assert_allclose(xn, ref[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(pn, ref[1], rtol=1e-8, atol=1e-14)
+
+
+def test_unit_size_point_is_the_point_at_depth_one_over_s() -> None:
+    meas = DirectionSize((400.0, 150.0), 12.0, -5.0, 0.006, 3e-4, 0.4, 0.02)
+    m, cov = unit_size_point(meas, CAM)
+    size = 0.036  # the target at z = R/s = 6 m
+    expected = to_world(camera_point((400.0, 150.0), size / 0.006, (640, 480), 0.005, 31.0), 12, -5)
+    np.testing.assert_allclose(size * m, expected, atol=1e-12)
+    depth = DirectionDepth((400.0, 150.0), 12.0, -5.0, 1 / 0.006, 3e-4 / 0.006, 0.4, 0.02)
+    np.testing.assert_allclose(cov, cartesian_measurement(depth, CAM)[1])
+
+
+def test_size_feed_transports_a_burst_to_its_time_by_the_image_size() -> None:
+    feed = SizeFeed(Tracker3DConfig(burst_sigma_scale=2.0))
+    # s grows from 0.006 to 0.0066 between the tracking frames at 1.0 and 1.3 s
+    _, none = feed.frame(FeedFrame(1.0, (320.0, 240.0), 0.0, 0.0, 0.006), CAM)
+    assert none is None
+    feed.burst(1.15, 6.0, 0.01)  # effective time 1.15: half-way, s = √(0.006·0.0066)
+    _, size = feed.frame(FeedFrame(1.3, (320.0, 240.0), 0.0, 0.0, 0.0066), CAM)
+    assert size is not None
+    s_b = math.sqrt(0.006 * 0.0066)
+    assert size[0] == pytest.approx(6.0 * s_b)
+    assert size[1] == pytest.approx((2.0 * 0.01 * s_b) ** 2)
+    _, again = feed.frame(FeedFrame(1.4, (320.0, 240.0), 0.0, 0.0, 0.0066), CAM)
+    assert again is None  # a burst is used once
+
+
+def test_size_track_starts_on_a_burst_learns_the_size_and_keeps_it_across_a_gap() -> None:
+    rng = np.random.default_rng(21)
+    tracker = Tracker3D.of_kind("mmae")
+    size, cfg = 0.036, Tracker3DConfig()
+    assert tracker.step_size(0.0, None) is None
+    meas = lambda z: DirectionSize((320.0, 240.0), 0.0, 0.0, size / z, cfg.sigma_size_rel)  # noqa: E731
+    assert tracker.step_size(0.0, unit_size_point(meas(5.0), CAM)) is None  # no size yet
+    est = None
+    for i in range(300):  # a static target at 5 m, a burst (1 % depth σ) every 10th frame
+        t = i / 30
+        burst = (size * (1 + rng.normal(0, 0.002)), (size * 0.002) ** 2) if i % 10 == 0 else None
+        est = tracker.step_size(t, unit_size_point(meas(5.0), CAM), burst)
+    assert est is not None
+    assert est.position_m[2] == pytest.approx(5.0, abs=0.01)
+    assert est.position_sigma_m[2] < 0.01
+    # 3 s without anything, then a direction and size only: the track restarts with its size
+    again = tracker.step_size(13.0, unit_size_point(meas(4.0), CAM))
+    assert again is not None
+    assert again.position_m[2] == pytest.approx(4.0, abs=0.01)
+    assert again.velocity_m_s == (0.0, 0.0, 0.0)
+    tracker.reset()  # a new target: no size known
+    assert tracker.step_size(14.0, unit_size_point(meas(4.0), CAM)) is None

@@ -41,7 +41,7 @@ space. Frames are documented in ``docs/tracking3d.md``.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -62,6 +62,10 @@ from dffd.core.motion_models import (
 
 FloatArray = npt.NDArray[np.float64]
 Vec3 = tuple[float, float, float]
+# The tracker's state: the motion models' 10 elements, then the target's size R (m) — the
+# constant of the size invariant ``z s = R`` (docs/tracking3d.md). The models never touch it.
+SIZE = STATE_DIM
+TRACK_DIM = STATE_DIM + 1
 TrackerKind = Literal["mmae", "imm", "cv"]
 TRACKER_KINDS: tuple[TrackerKind, ...] = ("mmae", "imm", "cv")
 
@@ -99,6 +103,23 @@ class DirectionDepth:
 
 
 @dataclass(frozen=True, slots=True)
+class DirectionSize:
+    """One frame's direction and apparent size: centroid, pan/tilt and ``s = r·pitch/F``.
+
+    ``s`` is the normalised image size (``= R/z`` for a target of size ``R`` at depth ``z``);
+    ``sigma_size_rel`` is its relative σ (σ_s/s).
+    """
+
+    centroid_px: tuple[float, float]
+    pan_deg: float
+    tilt_deg: float
+    size_ratio: float
+    sigma_size_rel: float
+    sigma_px: float = 0.3  # centroid σ per axis
+    sigma_angle_deg: float = 0.02  # pan/tilt σ per axis
+
+
+@dataclass(frozen=True, slots=True)
 class Tracker3DConfig:
     """Noise densities of the bank and the combination's constants.
 
@@ -117,6 +138,17 @@ class Tracker3DConfig:
     init_sigma_a_m_s2: float = 0.5
     init_sigma_omega_rad_s: float = 0.3
     max_gap_s: float = 1.0  # a longer gap between measurements restarts the track
+    # Size-state measurements (step_size): random walk of the target size R. R is constant for a
+    # rigid target; the walk lets it follow what the size invariant does not model (a flat
+    # target seen at a changing angle, a residual magnification error): 10⁻⁶ m (3·10⁻⁵ of a
+    # 36 mm target) per √s (swept 0, 10⁻¹³, 10⁻¹², 10⁻¹¹ on the reference optics).
+    q_size_m2_s: float = 1e-12
+    # Measurement noise of the size-state feed (dffd.core.track_feed). Measured on the reference
+    # optics only (hil run --optics reference, steady state, against the simulator's truth):
+    sigma_size_rel: float = 3e-4  # σ of s/s on tracking frames (R = s·z_true scatters 2·10⁻⁴)
+    sigma_px: float = 0.3  # centroid σ per axis
+    sigma_angle_deg: float = 0.03  # pan/tilt of the tag (dead-reckoned head model) per axis
+    burst_sigma_scale: float = 2.0  # a burst's z_m errors over its published σ
 
     def bank(self) -> list[MotionModel]:
         """The multiple-model bank: CV, CA, CT."""
@@ -168,6 +200,26 @@ def cartesian_measurement(
     var = np.array([meas.sigma_px**2, meas.sigma_px**2, meas.sigma_z_m**2, sa * sa, sa * sa])
     cov = (jac * var) @ jac.T
     return world, _sym(cov)
+
+
+def unit_size_point(meas: DirectionSize, camera: CameraModel) -> tuple[FloatArray, FloatArray]:
+    """World point ``m`` of a target of unit size (``p = R m``) and its covariance.
+
+    ``m = R(pan, tilt) · (k(u − cx), k(v − cy), 1) / s`` is the Cartesian conversion at the depth
+    ``1/s`` with the relative size σ as its relative depth σ, so the covariance is
+    :func:`cartesian_measurement`'s.
+    """
+    z = 1.0 / meas.size_ratio
+    depth = DirectionDepth(
+        meas.centroid_px,
+        meas.pan_deg,
+        meas.tilt_deg,
+        z,
+        meas.sigma_size_rel * z,
+        meas.sigma_px,
+        meas.sigma_angle_deg,
+    )
+    return cartesian_measurement(depth, camera)
 
 
 def mmae_probabilities(prior: FloatArray, log_likelihoods: FloatArray, floor: float) -> FloatArray:
@@ -230,10 +282,11 @@ class Tracker3D:
         self.method = method
         self.names = [m.name for m in self.models]
         n = len(self.models)
-        self._x = np.zeros((n, STATE_DIM))
-        self._p = np.zeros((n, STATE_DIM, STATE_DIM))
+        self._x = np.zeros((n, TRACK_DIM))
+        self._p = np.zeros((n, TRACK_DIM, TRACK_DIM))
         self._mu = np.full(n, 1.0 / n)
         self._t: float | None = None
+        self._size: tuple[float, float] | None = None  # (R̂, var) of the last size track
 
     @classmethod
     def of_kind(cls, kind: TrackerKind, config: Tracker3DConfig | None = None) -> Tracker3D:
@@ -258,6 +311,7 @@ class Tracker3D:
         n = len(self.models)
         self._mu = np.full(n, 1.0 / n)
         self._t = None
+        self._size = None
 
     def step(
         self, t: float, meas: DirectionDepth | None, camera: CameraModel | None = None
@@ -275,17 +329,47 @@ class Tracker3D:
         self, t: float, y_r: tuple[FloatArray, FloatArray] | None
     ) -> Track3DEstimate | None:
         """As :meth:`step` with an already converted measurement ``(y, R)`` (world frame)."""
-        if self._t is None or (y_r is not None and t - self._t > self.config.max_gap_s):
+        if self._restarts(t, y_r is not None):
             if y_r is None:
                 return None
             self._start(t, y_r[0], y_r[1])
             return self.estimate()
-        dt = t - self._t
-        if dt > 0.0:
-            self._predict(dt)
-            self._t = t
+        self._advance(t)
         if y_r is not None:
-            self._update(y_r[0], y_r[1])
+            self._update_models(lambda x, p: _kf_update(x, p, y_r[0], y_r[1]))
+        return self.estimate()
+
+    def step_size(
+        self,
+        t: float,
+        unit: tuple[FloatArray, FloatArray] | None,
+        size: tuple[float, float] | None = None,
+    ) -> Track3DEstimate | None:
+        """Advance to ``t``; fold in a size measurement and a direction-and-size measurement.
+
+        ``unit``: the unit-size point ``m`` and its covariance (:func:`unit_size_point`): the
+        position is ``p = R m`` with the size ``R`` a state (pseudo-measurement ``p − R m = 0``,
+        linear in the state for the measured ``m``; noise ``R̂² Σ_m``). ``size``: ``(R, σ_R²)``,
+        a measurement of the size (a burst's depth times the image size at its time). A track
+        starts with both; after a gap it restarts with the size it had. Returns None while no
+        track exists.
+        """
+        if self._restarts(t, unit is not None):
+            if size is None and self._size is not None and self._t is not None:
+                size = self._size
+            if unit is None or size is None:
+                return None
+            self._start(t, size[0] * unit[0], size[0] ** 2 * unit[1])
+            self._start_size(unit[0], size)
+            return self.estimate()
+        self._advance(t)
+        if size is not None:
+            self._x, self._p = _size_update(self._x, self._p, size[0], size[1])
+        if unit is not None:
+            self._update_models(lambda x, p: _unit_update(x, p, unit[0], unit[1]))
+        if self._size is not None:
+            mu = self._mu
+            self._size = float(mu @ self._x[:, SIZE]), float(mu @ self._p[:, SIZE, SIZE])
         return self.estimate()
 
     def estimate(self) -> Track3DEstimate | None:
@@ -315,18 +399,42 @@ class Tracker3D:
 
     def _start(self, t: float, y: FloatArray, r: FloatArray) -> None:
         cfg = self.config
-        x = np.zeros(STATE_DIM)
+        x = np.zeros(TRACK_DIM)
         x[POS] = y
-        p = np.zeros((STATE_DIM, STATE_DIM))
+        p = np.zeros((TRACK_DIM, TRACK_DIM))
         p[POS, POS] = r
         p[VEL, VEL] = np.eye(3) * cfg.init_sigma_v_m_s**2
         p[ACC, ACC] = np.eye(3) * cfg.init_sigma_a_m_s2**2
         p[OMEGA, OMEGA] = cfg.init_sigma_omega_rad_s**2
+        p[SIZE, SIZE] = 1.0  # unobserved by Cartesian measurements; set by _start_size
         n = len(self.models)
         self._x = np.tile(x, (n, 1))
         self._p = np.tile(p, (n, 1, 1))
         self._mu = np.full(n, 1.0 / n)
         self._t = t
+        self._size = None
+
+    def _start_size(self, m: FloatArray, size: tuple[float, float]) -> None:
+        """Add the size to a track started at ``p = R m``: ``cov(p) += var m mᵀ``, ``cov(p, R)
+        = var m``."""
+        r_hat, var = size
+        self._x[:, SIZE] = r_hat
+        self._p[:, POS, POS] += var * np.outer(m, m)
+        self._p[:, POS, SIZE] = var * m
+        self._p[:, SIZE, POS] = var * m
+        self._p[:, SIZE, SIZE] = var
+        self._size = (r_hat, var)
+
+    def _restarts(self, t: float, measured: bool) -> bool:
+        """No track yet, or a measurement after a gap longer than ``max_gap_s``."""
+        return self._t is None or (measured and t - self._t > self.config.max_gap_s)
+
+    def _advance(self, t: float) -> None:
+        assert self._t is not None
+        dt = t - self._t
+        if dt > 0.0:
+            self._predict(dt)
+            self._t = t
 
     def _predict(self, dt: float) -> None:
         xs, ps = self._x, self._p
@@ -334,15 +442,27 @@ class Tracker3D:
             pi = markov_matrix(len(self.models), self.config.switch_rate_hz, dt)
             xs, ps, self._mu = imm_mix(xs, ps, self._mu, pi)
         new_x, new_p = np.empty_like(xs), np.empty_like(ps)
+        n = STATE_DIM
+        q_size = self.config.q_size_m2_s * dt
         for j, model in enumerate(self.models):
-            new_x[j], f, q = model.predict(xs[j], dt)
-            new_p[j] = _sym(f @ ps[j] @ f.T + q)
+            new_x[j, :n], f, q = model.predict(xs[j, :n], dt)
+            new_x[j, SIZE] = xs[j, SIZE]
+            # F = diag(F_model, 1): the size is carried by every model.
+            fp = f @ ps[j, :n, :]
+            pj = new_p[j]
+            pj[:n, :n] = fp[:, :n] @ f.T + q
+            pj[:n, SIZE] = pj[SIZE, :n] = fp[:, SIZE]
+            pj[SIZE, SIZE] = ps[j, SIZE, SIZE] + q_size
+            new_p[j] = _sym(pj)
         self._x, self._p = new_x, new_p
 
-    def _update(self, y: FloatArray, r: FloatArray) -> None:
+    def _update_models(
+        self, update: Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray, float]]
+    ) -> None:
+        """Update every model with ``update(x, P) -> (x⁺, P⁺, log L)``; then the probabilities."""
         loglik = np.empty(len(self.models))
         for j in range(len(self.models)):
-            self._x[j], self._p[j], loglik[j] = _kf_update(self._x[j], self._p[j], y, r)
+            self._x[j], self._p[j], loglik[j] = update(self._x[j], self._p[j])
         if len(self.models) > 1:
             floor = self.config.probability_floor
             self._mu = mmae_probabilities(self._mu, loglik, floor)
@@ -374,6 +494,20 @@ class Tracker3DBank:
                 out[kind] = est
         return out
 
+    def step_size(
+        self,
+        t: float,
+        unit: tuple[FloatArray, FloatArray] | None,
+        size: tuple[float, float] | None = None,
+    ) -> dict[str, Track3DEstimate]:
+        """Step every tracker (see :meth:`Tracker3D.step_size`); those with a track."""
+        out: dict[str, Track3DEstimate] = {}
+        for kind, tracker in self.trackers.items():
+            est = tracker.step_size(t, unit, size)
+            if est is not None:
+                out[kind] = est
+        return out
+
     def reset(self) -> None:
         """Forget every track."""
         for tracker in self.trackers.values():
@@ -395,6 +529,40 @@ def _kf_update(
     a = p - gain @ p[POS, :]
     p_new = a - a[:, POS] @ gain.T + gain @ r @ gain.T
     return x_new, _sym(p_new), loglik
+
+
+def _unit_update(
+    x: FloatArray, p: FloatArray, m: FloatArray, sigma_m: FloatArray
+) -> tuple[FloatArray, FloatArray, float]:
+    """Joseph-form update on the pseudo-measurement ``0 = p − R m`` (``H = [I₃ 0 … −m]``).
+
+    Its noise is ``R̂² Σ_m``; returns (x⁺, P⁺, log-likelihood).
+    """
+    size = float(x[SIZE])
+    nu = size * m - x[POS]
+    pht = p[:, POS] - np.outer(p[:, SIZE], m)  # P Hᵀ
+    rn = (size * size) * sigma_m
+    s_inv, logdet = _inv3_logdet(pht[POS, :] - np.outer(m, pht[SIZE, :]) + rn)
+    maha = float(nu @ s_inv @ nu)
+    loglik = -0.5 * (maha + logdet + 3.0 * _LOG_2PI)
+    gain = pht @ s_inv
+    x_new = x + gain @ nu
+    a = p - gain @ pht.T  # (I − KH) P
+    aht = a[:, POS] - np.outer(a[:, SIZE], m)  # A Hᵀ
+    p_new = a - aht @ gain.T + gain @ rn @ gain.T
+    return x_new, _sym(p_new), loglik
+
+
+def _size_update(
+    xs: FloatArray, ps: FloatArray, size: float, var: float
+) -> tuple[FloatArray, FloatArray]:
+    """Scalar Joseph-form update of every model's state on a measured size (``H = e_R``)."""
+    s = ps[:, SIZE, SIZE] + var  # (n,)
+    gain = ps[:, :, SIZE] / s[:, None]  # (n, d)
+    xs_new = xs + gain * (size - xs[:, SIZE])[:, None]
+    a = ps - gain[:, :, None] * ps[:, None, SIZE, :]
+    ps_new = a - a[:, :, SIZE, None] * gain[:, None, :] + var * gain[:, :, None] * gain[:, None, :]
+    return xs_new, 0.5 * (ps_new + ps_new.transpose(0, 2, 1))
 
 
 def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
