@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import io
 import json
 import math
 from pathlib import Path
@@ -51,9 +53,12 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     scenario = base / "short-static.toml"
     scenario.write_text(SHORT_SCENARIO, encoding="utf-8")
     out = base / "out"
-    code = hil_main(
-        ["run", str(scenario), "--fast", "--out", str(out), "--no-progress", "--record"]
-    )
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = hil_main(
+            ["run", str(scenario), "--fast", "--out", str(out), "--no-progress", "--record"]
+        )
+    (base / "stdout.txt").write_text(printed.getvalue(), encoding="utf-8")
     assert code == 0
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
     return out, report
@@ -260,3 +265,30 @@ def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> N
     row = markdown_table([report]).splitlines()[-1]
     assert "| aberrated | 2 |" in row
     assert hil_main(["run", str(scenario), "--fast", "--seeds", "1,x"]) == 2
+
+
+def test_recording_plan_says_the_size_and_warns_before_the_disk_fills() -> None:
+    from hil.runner import recording_plan
+
+    # 640x480 gray at 30 fps: 553 MB/min raw, ~276 MB/min as PNG (the measured 0.46-0.48).
+    plan, warning = recording_plan((640, 480), 30.0, 120.0, free_bytes=100 * 10**9)
+    assert "~276 MB per minute of scenario (553 MB/min uncompressed)" in plan
+    assert "this run ~553 MB" in plan
+    assert warning is None
+    _, warning = recording_plan((640, 480), 30.0, 120.0, free_bytes=5 * 10**9)
+    assert warning is not None
+    assert "last only ~18 min" in warning
+    _, warning = recording_plan((640, 480), 30.0, 120.0, free_bytes=300 * 10**6)
+    assert warning is not None
+    assert "does not fit" in warning
+
+
+def test_a_recording_run_says_what_it_will_write_and_what_it_wrote(
+    short_run: tuple[Path, dict],
+) -> None:
+    out, _ = short_run
+    printed = (out.parent / "stdout.txt").read_text(encoding="utf-8")
+    assert "MB per minute of scenario" in printed.splitlines()[0]  # up front
+    (recording,) = (out / "recording").iterdir()
+    frames = len(list(recording.glob("frames/*.png")))
+    assert f"recording: {recording} ({frames} frames, " in printed  # and what it wrote
