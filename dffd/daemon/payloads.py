@@ -2,6 +2,16 @@
 
 Non-finite numbers become null, negative sizes and σ are dropped, and every payload is
 numbered per kind. An output that does not fit its schema is skipped and counted, never fatal.
+
+Publish gate (:class:`FirstDepthGate`): after a start or a loss the core initialises its filters
+from the first accepted burst, also when its vertex lay outside the bracket (extrapolated). The
+first burst of a start spans most of the focus range, where the cost is far from a parabola:
+live on the default demo its extrapolated vertex put the target at 15.2 m (σ 0.76 m) while it
+was at 10.0 m, and the first four estimates said 14.4-15.1 m with σ 0.72-0.75 m (a 6-7σ error).
+So depths are published only once a burst with its vertex inside its bracket has been taken
+(or :data:`FIRST_DEPTH_MAX_BURSTS` accepted bursts, so a target that keeps outrunning its
+brackets is not hidden for ever); until then estimates go out with their depth fields null.
+The ``…/measurement`` payloads of those bursts are published as they are, with their reason.
 """
 
 from __future__ import annotations
@@ -13,6 +23,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
+from dffd.core.focus import REASON_OK
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
 from dffd.core.tracking3d import Track3DEstimate
@@ -23,7 +34,47 @@ _LOGGER = logging.getLogger(__name__)
 _M = TypeVar("_M", bound=BaseModel)
 _T = TypeVar("_T")
 
-__all__ = ["Payloads", "nonneg", "truth_payload"]
+# Accepted bursts after which depths are published even if every one was extrapolated: the
+# scheduler centres each next bracket on the last vertex, so on the default demo the second
+# burst already brackets it (measured: 1 extrapolated first burst per start, none after).
+FIRST_DEPTH_MAX_BURSTS = 3
+
+__all__ = [
+    "FIRST_DEPTH_MAX_BURSTS",
+    "FirstDepthGate",
+    "Payloads",
+    "nonneg",
+    "truth_payload",
+    "without_depth",
+]
+
+
+class FirstDepthGate:
+    """Whether the core's depths may be published yet (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.open = False
+        self._accepted = 0  # accepted bursts since the filters were (re)initialised
+        self.withheld = 0  # estimates published with their depths nulled, since start
+
+    def on_measurement(self, m: CoreMeasurement) -> None:
+        """A burst closed: an accepted one inside its bracket opens the gate."""
+        if not m.accepted:
+            return
+        self._accepted += 1
+        if m.reason in ("", REASON_OK) or self._accepted >= FIRST_DEPTH_MAX_BURSTS:
+            self.open = True
+
+    def passes(self, est: CoreEstimate) -> bool:
+        """True when ``est``'s depths may be published; an estimate without depths (filters
+        not initialised: start, loss, release) closes the gate again."""
+        if all(z is None for z in est.depth_m.values()):
+            self.open = False
+            self._accepted = 0
+            return True
+        if not self.open:
+            self.withheld += 1
+        return self.open
 
 
 class Payloads:
@@ -116,6 +167,27 @@ class Payloads:
             z_m=_fin(m.z_m),
             sigma_m=nonneg(m.sigma_m),
         )
+
+
+# The fields of an estimate that follow from its depth (nulled while the gate is closed).
+_NO_DEPTH: dict[str, Any] = {
+    "depth_m": models.DepthByEstimator(measured=None, cf1=None, cf2=None, lpv=None, kf=None),
+    "z_m": None,
+    "sigma_m": None,
+    "beta_m_s": None,
+    "size_m": None,
+    "position_m": None,
+    "velocity_m_s": None,
+    "acceleration_m_s2": None,
+    "angular_speed_rad_s": None,
+    "position_sigma_m": None,
+    "model_probabilities": None,
+}
+
+
+def without_depth(payload: models.Estimate) -> models.Estimate:
+    """``payload`` with every field that follows from the depth null (the gate is closed)."""
+    return payload.model_copy(update=_NO_DEPTH)
 
 
 def truth_payload(t_mono: float, truth: Any) -> models.Truth:
