@@ -6,6 +6,7 @@ import importlib
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -67,3 +68,24 @@ def test_light_copies_of_implementation_constants_match() -> None:
     assert arguments.DEVICES_LINK_NAME == usb.DEFAULT_LINK_NAME
     assert arguments.DEVICES_GROUP == usb.DEFAULT_GROUP
     assert arguments.DEVICES_SYSFS == usb.SYSFS_USB
+
+
+def test_a_first_start_says_the_kernels_compile(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dffd.cli.loading import kernel_cache_dirs, kernels_cached, say_if_compiling
+
+    env = {"NUMBA_CACHE_DIR": str(tmp_path)}
+    assert not kernels_cached(env)
+    (cache,) = kernel_cache_dirs(env)
+    assert cache.parent == tmp_path
+    assert cache.name.startswith("core_")  # numba's "<dir>_<sha1 of the dir>" naming
+    cache.mkdir()
+    (cache / "kernels._kernel_irls-261.py311.nbi").write_bytes(b"")
+    assert kernels_cached(env)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "empty"))
+    say_if_compiling("run")
+    assert "compiling the tracker's kernels" in capsys.readouterr().err
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    say_if_compiling("run")
+    assert capsys.readouterr().err == ""

@@ -19,7 +19,7 @@ from typing import cast
 from dffd import __version__
 from dffd.exitcodes import EXIT_CODES_HELP, EXIT_INTERRUPTED
 
-__all__ = ["SUBCOMMANDS", "Subcommand", "build_parser", "entry_point", "main"]
+__all__ = ["NEEDS_CORE", "SUBCOMMANDS", "Subcommand", "build_parser", "entry_point", "main"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +65,10 @@ SUBCOMMANDS: dict[str, Subcommand] = {
 }
 
 
+# Subcommands that load the estimation core (and with it the tracker's numba kernels).
+NEEDS_CORE = frozenset({"run", "replay", "calibrate"})
+
+
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The top-level parser; only the ``selected`` subcommand's arguments are loaded."""
     parser = argparse.ArgumentParser(
@@ -92,6 +96,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser(selected).parse_args(argv)
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.command in NEEDS_CORE:
+        from dffd.cli.loading import say_if_compiling
+
+        say_if_compiling(args.command)
     try:
         return cast(int, _resolve(args._implementation)(args))
     except KeyboardInterrupt:
