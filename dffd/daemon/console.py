@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Self
 
+from rich import box
 from rich.console import Console as RichConsole
 from rich.console import Group
 from rich.live import Live
@@ -30,7 +31,7 @@ REFRESH_PER_S = 4.0
 # 10–30 Hz while tracking, so a second without one means tracking has stopped.
 STALE_AFTER_S = 1.0
 # What the cf1 row says when it has no depth because no target size is known (CF1 needs R).
-CF1_NEEDS_SIZE = "needs target.known_size_m (or the set_known_size command)"
+CF1_NEEDS_SIZE = "needs target.known_size_m"
 
 
 @dataclass(frozen=True, slots=True)
@@ -161,13 +162,14 @@ def render(snap: ConsoleSnapshot) -> Group:
     head = Text.assemble(
         ("dffd ", "bold"),
         (snap.camera, "bold cyan"),
-        "  state ",
+        " ",
         (snap.state, "bold green" if snap.state == "tracking" else "bold yellow"),
-        "  last estimate ",
+        " · last estimate ",
         (_age(snap.last_estimate_age_s), "bold red" if stale else ""),
-        f"  up {snap.uptime_s:.0f} s  pan {snap.pan_deg:+.1f}°  tilt {snap.tilt_deg:+.1f}°",
+        f" · up {snap.uptime_s:.0f} s · pan {snap.pan_deg:+.1f}° tilt {snap.tilt_deg:+.1f}°",
     )
-    rates = Table(title="rates", expand=False)
+    # Compact tables (no outer border): the whole view fits an 80×24 terminal.
+    rates = Table(box=box.SIMPLE_HEAD, show_edge=False, expand=False, pad_edge=False)
     for col in ("frames/s", "estimates/s", "depth/s", "limit/s", "ratio"):
         rates.add_column(col, justify="right")
     limit = snap.depth_limit_hz
@@ -179,7 +181,10 @@ def render(snap: ConsoleSnapshot) -> Group:
     title = "depth (m)"
     if stale:
         title += f" — last estimate {_age(snap.last_estimate_age_s)}, not current"
-    depth = Table(title=title, expand=False, style="dim" if stale else "")
+    depth = Table(
+        title=title, title_justify="left", box=box.SIMPLE_HEAD, show_edge=False,
+        expand=False, pad_edge=False, style="dim" if stale else "",
+    )  # fmt: skip
     depth.add_column("estimator")
     depth.add_column("z", justify="right")
     depth.add_column("error vs truth", justify="right")
@@ -193,7 +198,7 @@ def render(snap: ConsoleSnapshot) -> Group:
             continue
         depth.add_row(label, _num(z, 3), _num(err, 3), style="dim strike" if stale else "")
     depth.add_row("truth", _num(snap.truth_z_m, 3), "")
-    health = Table(title="health", expand=False)
+    health = Table(box=box.SIMPLE_HEAD, show_edge=False, expand=False, pad_edge=False)
     for col in ("VISCA link", "timeouts", "errors", "reconnects", "MQTT", "backlog", "dropped"):
         health.add_column(col, justify="right")
     health.add_row(
@@ -207,7 +212,8 @@ def render(snap: ConsoleSnapshot) -> Group:
         f"bursts accepted {snap.bursts_accepted}, rejected {snap.bursts_rejected};"
         f" frames {roles}; size R̂ = {_num(snap.size_m, 4)} m   (Ctrl-C to stop)"
     )
-    return Group(head, rates, depth, health, foot)
+    gap = Text("")
+    return Group(head, gap, rates, gap, depth, gap, health, foot)
 
 
 class _ConsoleLogHandler(logging.Handler):
