@@ -8,7 +8,8 @@ the daemon's orderly shutdown alone and ``make`` returns dffd's exit code; on le
 the foreground back. Ctrl-Z is ignored meanwhile: a stopped daemon in its own group would leave
 the terminal to a process nobody can resume (``make``'s shell does not know it). Nothing is
 done when stdin is not a terminal, when dffd is not in the foreground, or when it already leads
-its process group (started directly by an interactive shell).
+its process group (started directly by an interactive shell); ``dffd run`` asks for it only with
+its live console view (a daemon that a script or a test starts leaves Ctrl-C to its parent).
 """
 
 from __future__ import annotations

@@ -147,7 +147,9 @@ def run(args: argparse.Namespace) -> int:
     daemon = Daemon(config, live_console=live, duration_s=args.duration, sim_faults=faults)
     from dffd.cli.terminal import own_foreground
 
-    with own_foreground():
+    # Only with the live view: an operator at the terminal (make run). A daemon a script or a
+    # test starts without the view must leave the terminal's Ctrl-C to its parent.
+    with own_foreground() if live else contextlib.nullcontext(enter_result=False):
         try:
             return asyncio.run(daemon.main())
         except KeyboardInterrupt:
