@@ -70,3 +70,16 @@ def test_log_records_go_through_the_live_view_and_the_handler_comes_back(
     assert "LOG camera on /dev/pts/9" in screen.getvalue()
     assert "dffd stopped cleanly" in screen.getvalue()
     assert stream.getvalue() == "LOG after\n"
+
+
+def test_an_acquire_says_what_it_searches_until_the_target_is_tracked() -> None:
+    from dffd.daemon.status import StatusBoard
+
+    board = StatusBoard("sim", "lpv", 0.0)
+    board.on_release()
+    assert "released" in (board.message or "")
+    board.on_acquire(None)
+    assert board.state == "acquiring"
+    assert "searching the whole frame" in (board.message or "")
+    board.on_acquire((10, 20, 100, 80))
+    assert "roi [10, 20, 100, 80]" in (board.message or "")

@@ -504,8 +504,8 @@ class Daemon:
             now = time.monotonic()
             out = result.step.output
             self.board.state = out.state
-            if out.state != "idle":
-                self.board.message = None
+            if out.state == "tracking":
+                self.board.message = None  # a release's or an acquire's note is over
             if self.dashboard is not None:
                 self.dashboard.on_result(result.frame, result.step, result.cpu_s)
             if out.measurement is not None:
@@ -566,7 +566,7 @@ class Daemon:
 
     def _acquired(self, roi: tuple[int, int, int, int] | None) -> None:
         self._set_roi(roi)
-        self.board.on_acquire()
+        self.board.on_acquire(roi)
 
     def _released(self) -> None:
         self._drop_pending_results()

@@ -77,9 +77,14 @@ class StatusBoard:
         self.last_size = estimate.size_m
         self.last_estimate_mono = now
 
-    def on_acquire(self) -> None:
-        """An acquire command: the core searches for the target."""
-        self.state, self.message = "acquiring", None
+    def on_acquire(self, roi: tuple[int, int, int, int] | None = None) -> None:
+        """An acquire command: the core searches for the target (said until it tracks it)."""
+        where = "the whole frame" if roi is None else f"roi {list(roi)}"
+        self.state = "acquiring"
+        self.message = (
+            f"acquire: searching {where} for the target; it must be in view (after a release "
+            "the head stays where it stopped)"
+        )
 
     def on_release(self) -> None:
         """A release command: idle, and the last depths are no longer current."""
