@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from dffd.config import ConfigError, load_config
+from dffd.consistency import consistency_stats
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
 from dffd.core.tracking3d import Track3DEstimate
@@ -153,6 +154,9 @@ def replay(
 def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str, Any]:
     """One EST.jsonl object (docs/design.md §8 fields first, then the rest of the estimate).
 
+    ``sigma_m`` is the σ of every estimator (keys as ``depth_m``; null where no value),
+    ``z_sigma_m`` the best's (the σ published with ``z_m``).
+
     The 3D tracker's fields (world frame, docs/tracking3d.md) are null on a frame without a
     track: ``track_position_m``/``track_velocity_m_s`` (the payload's ``position_m`` and
     ``velocity_m_s`` when present), ``acceleration_m_s2``, ``angular_speed_rad_s``,
@@ -167,7 +171,8 @@ def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str
         "frame": e.frame_index,
         "state": e.state,
         "z_m": e.z_m,
-        "sigma_m": e.sigma_m,
+        "sigma_m": {k: e.sigma_by.get(k) for k in ESTIMATORS},
+        "z_sigma_m": e.sigma_m,
         "measured_t_s": e.measured_t,
         "beta_m_s": e.beta_m_s,
         "rho": e.rho,
@@ -229,6 +234,7 @@ def summarize(
     for name in ESTIMATORS:
         ts: list[float] = []
         vals: list[float] = []
+        sigmas: list[float] = []
         for line in lines:
             value = line["depth_m"].get(name)
             if value is None:
@@ -240,10 +246,15 @@ def summarize(
             )
             ts.append(float(t))
             vals.append(float(value))
+            sigma = (line.get("sigma_m") or {}).get(name)
+            sigmas.append(math.nan if sigma is None else float(sigma))
         if not ts:
             continue
         err = np.asarray(vals) - truth.z_at(ts)
-        estimators[name] = error_stats(ts, err.tolist(), t_start + settle_s)
+        block = error_stats(ts, err.tolist(), t_start + settle_s)
+        if any(math.isfinite(x) for x in sigmas):
+            block |= consistency_stats(ts, err.tolist(), sigmas, t_start + settle_s)
+        estimators[name] = block
     return {
         "schema": SCHEMA,
         "settle_s": settle_s,
@@ -254,16 +265,23 @@ def summarize(
 
 def format_table(summary: dict[str, Any]) -> str:
     """Human-readable error table (millimetres)."""
-    head = f"{'estimator':<10}{'n':>6}{'bias':>9}{'std':>9}{'rms':>9}{'ss std':>9}{'p95':>9}"
-    rows = [head + "   (mm)"]
+    head = (
+        f"{'estimator':<10}{'n':>6}{'bias':>9}{'std':>9}{'rms':>9}{'ss std':>9}{'p95':>9}"
+        f"{'2σ cov':>9}{'NEES':>9}"
+    )
+    rows = [head + "   (mm; 2σ coverage and NEES of the published σ)"]
     for name, st in summary["estimators"].items():
 
         def mm(v: float | None) -> str:
             return "-" if v is None or not math.isfinite(v) else f"{1000 * v:.1f}"
 
+        def num(v: float | None, fmt: str) -> str:
+            return "-" if v is None or not math.isfinite(v) else fmt.format(v)
+
         rows.append(
             f"{name:<10}{st['n']:>6}{mm(st['bias_m']):>9}{mm(st['std_m']):>9}"
             f"{mm(st['rms_m']):>9}{mm(st['ss_std_m']):>9}{mm(st['p95_abs_m']):>9}"
+            f"{num(st.get('coverage_2sigma'), '{:.3f}'):>9}{num(st.get('nees'), '{:.2f}'):>9}"
         )
     b = summary["bursts"]
     rows.append(

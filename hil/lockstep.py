@@ -347,7 +347,10 @@ class _Runner:
             res.extra.setdefault("burst_counts", []).append(list(m.focus_counts))
             if m.accepted and m.z_m is not None:
                 # Raw z_m scored against the truth at the burst's own exposures.
-                res.series("measured").add(m.t, m.z_m, tz)
+                # with the σ the core gave it (adapted), when it applied it on this frame
+                est0 = out.estimate
+                sig = est0.sigma_by.get("measured") if est0 and est0.measured_t == m.t else None
+                res.series("measured").add(m.t, m.z_m, tz, sig)
         est = out.estimate
         if est is None:
             return
@@ -356,7 +359,7 @@ class _Runner:
         for name, z in est.depth_m.items():
             if name == "measured" or z is None:
                 continue
-            res.series(name).add(frame.t, z, truth_z)
+            res.series(name).add(frame.t, z, truth_z, est.sigma_by.get(name))
         if est.beta_m_s is not None:
             res.beta.add(frame.t, est.beta_m_s)
         if est.size_m is not None:

@@ -253,10 +253,11 @@ def _score(data: _Collected, result: RunResult, scenario: Scenario, truth_csv: P
     for p in est:
         t = float(p["t_mono"])
         tz = truth_at(t)
+        sigmas = p.get("sigmas_m") or {}
         for name, z in (p.get("depth_m") or {}).items():
             if name == "measured" or z is None:
                 continue
-            result.series(name).add(t, float(z), tz)
+            result.series(name).add(t, float(z), tz, sigmas.get(name))
         if p.get("beta_m_s") is not None:
             result.beta.add(t, float(p["beta_m_s"]))
         if p.get("size_m") is not None:

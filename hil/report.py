@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from dffd.consistency import COVERAGE_BAND, consistency_stats, in_band
 from hil.results import FloatArray, RunResult
 from hil.track3d import pooled_block
 
@@ -35,15 +36,20 @@ DEPTH_BINS_M = (0.0, 3.0, 5.0, 7.0, 9.0, 11.0)
 GIT_TIMEOUT_S = 5.0
 
 
-def summary_stats(t: FloatArray, err: FloatArray, settle_t: float) -> dict[str, Any]:
+def summary_stats(
+    t: FloatArray, err: FloatArray, settle_t: float, sigma: FloatArray | None = None
+) -> dict[str, Any]:
     """Error summary of design.md §8 over samples ``err`` at ``t`` (steady state: t ≥ settle_t).
 
     The §7 block comes from ``dffd.replay.error_stats`` (one definition for replay and bench);
-    the bench adds the steady-state bias, RMS and p95.
+    the bench adds the steady-state bias, RMS and p95; with the published ``sigma`` of every
+    sample, the 2σ coverage and NEES (:func:`dffd.consistency.consistency_stats`).
     """
     from dffd.replay import error_stats
 
     out: dict[str, Any] = dict(error_stats(t.tolist(), err.tolist(), settle_t))
+    if sigma is not None and np.isfinite(sigma).any():
+        out.update(consistency_stats(t.tolist(), err.tolist(), sigma.tolist(), settle_t))
     ok = np.isfinite(err) & np.isfinite(t)
     ss = err[ok][t[ok] >= settle_t]
     out["ss_n"] = int(ss.size)
@@ -56,7 +62,7 @@ def summary_stats(t: FloatArray, err: FloatArray, settle_t: float) -> dict[str, 
 
 def series_summary(results: Sequence[RunResult], pick: str, name: str) -> dict[str, Any] | None:
     """Pooled summary of estimate (``pick="estimates"``) or baseline series ``name``."""
-    ts, errs = [], []
+    ts, errs, sigmas = [], [], []
     for res in results:
         table = res.estimates if pick == "estimates" else res.baselines
         series = table.get(name)
@@ -65,10 +71,13 @@ def series_summary(results: Sequence[RunResult], pick: str, name: str) -> dict[s
         t, v, truth = series.arrays()
         ts.append(t - res.t_start)
         errs.append(v - truth)
+        sigmas.append(series.sigmas())
     if not ts:
         return None
     # Sessions are pooled on their own clocks (t relative to each session's start).
-    return summary_stats(np.concatenate(ts), np.concatenate(errs), results[0].settle_s)
+    return summary_stats(
+        np.concatenate(ts), np.concatenate(errs), results[0].settle_s, np.concatenate(sigmas)
+    )
 
 
 def build_report(
@@ -318,6 +327,9 @@ def evaluate_goals(report: dict[str, Any], thresholds: dict[str, float | None]) 
     if "lpv" in est and "cf2" in est:
         a, b = est["lpv"]["ss_std_m"], est["cf2"]["ss_std_m"]
         add("lpv ss_std_m ≤ cf2 ss_std_m", a, b, _le(a, b))
+    if best is not None and (cov := best.get("coverage_2sigma")) is not None:
+        # the published σ (the best estimator's) against its errors, whole run
+        add(f"{report['best']} 2σ coverage in {list(COVERAGE_BAND)}", cov, None, in_band(cov))
     rates = report["rates"]
     if (lim := thresholds.get("sweep_rate_ratio_min")) is not None:
         r = rates.get("sweep_rate_ratio")
@@ -357,7 +369,12 @@ def load_report(path: Path) -> dict[str, Any]:
 
 def format_table(report: dict[str, Any]) -> str:
     """A plain-text table of the report (printed after a run, pasted into hil/README.md)."""
-    rows = [("estimator", "n", "bias mm", "std mm", "rms mm", "ss std mm", "p95 mm")]
+    rows = [
+        (
+            "estimator", "n", "bias mm", "std mm", "rms mm", "ss std mm", "p95 mm",
+            "2σ cov", "NEES", "ss 2σ cov", "ss NEES",
+        )
+    ]  # fmt: skip
     items = [(k, v) for k, v in report["estimators"].items()]
     items += [(f"baseline:{k}", v) for k, v in report["baselines"].items() if v]
     for name, s in items:
@@ -370,6 +387,10 @@ def format_table(report: dict[str, Any]) -> str:
                 _mm(s["rms_m"]),
                 _mm(s["ss_std_m"]),
                 _mm(s["p95_abs_m"]),
+                _num(s.get("coverage_2sigma"), "{:.3f}"),
+                _num(s.get("nees"), "{:.2f}"),
+                _num(s.get("ss_coverage_2sigma"), "{:.3f}"),
+                _num(s.get("ss_nees"), "{:.2f}"),
             )
         )
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]

@@ -21,17 +21,22 @@ FloatArray = npt.NDArray[np.float64]
 
 @dataclass
 class Series:
-    """Values of one quantity over time with the truth each should equal (NaN when unknown)."""
+    """Values of one quantity over time with the truth each should equal (NaN when unknown) and
+    the σ published with each value (NaN when none)."""
 
     t: list[float] = field(default_factory=list)
     value: list[float] = field(default_factory=list)
     truth: list[float] = field(default_factory=list)
+    sigma: list[float] = field(default_factory=list)
 
-    def add(self, t: float, value: float, truth: float = float("nan")) -> None:
-        """Append one sample."""
+    def add(
+        self, t: float, value: float, truth: float = float("nan"), sigma: float | None = None
+    ) -> None:
+        """Append one sample (``sigma``: the σ published with it, if any)."""
         self.t.append(t)
         self.value.append(value)
         self.truth.append(truth)
+        self.sigma.append(float("nan") if sigma is None else sigma)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -43,6 +48,10 @@ class Series:
             np.asarray(self.value, dtype=np.float64),
             np.asarray(self.truth, dtype=np.float64),
         )
+
+    def sigmas(self) -> FloatArray:
+        """The published σ of every sample (NaN where none was published)."""
+        return np.asarray(self.sigma, dtype=np.float64)
 
 
 @dataclass(frozen=True, slots=True)

@@ -74,7 +74,18 @@ def test_replay_writes_estimates_summary_and_plot(
     assert summary["schema"] == 1
     assert summary["settle_s"] == 3
     lpv = summary["estimators"]["lpv"]
-    assert set(lpv) == {"n", "bias_m", "std_m", "rms_m", "ss_std_m", "p95_abs_m"}
+    assert set(lpv) == {
+        "n", "bias_m", "std_m", "rms_m", "ss_std_m", "p95_abs_m",
+        # is the published σ honest: 2σ coverage and NEES, whole run and steady state
+        "n_sigma", "coverage_2sigma", "nees", "ss_coverage_2sigma", "ss_nees",
+        "first_abs_err_m", "first_sigma_m",
+    }  # fmt: skip
+    assert lpv["n_sigma"] == lpv["n"]
+    assert 0.0 <= lpv["coverage_2sigma"] <= 1.0
+    assert lpv["nees"] > 0
+    # every estimator's σ per line, keyed as depth_m; the best's with z_m
+    assert set(last["sigma_m"]) == set(last["depth_m"])
+    assert last["z_sigma_m"] == last["sigma_m"]["lpv"] > 0
     assert lpv["ss_std_m"] < 0.0377
     assert summary["bursts"]["accepted"] > 10
     assert png.stat().st_size > 10_000

@@ -47,6 +47,8 @@ from dffd.core.focus import FitConfig, PlanConfig, fit_burst, frame_cost
 from dffd.core.focus import plan_burst as _plan_burst
 from dffd.core.geometry import VelocityEstimator, camera_point, to_world
 from dffd.core.lens import Lens
+from dffd.core.noise import NoiseAdaptConfig, model_sigma_v_mm
+from dffd.core.uncertainty import Uncertainty
 from dffd.literals import FocusMeasure
 from drivers.frames import Frame
 
@@ -95,12 +97,13 @@ class PipelineConfig:
     # --fast after the σ_v re-measurement: LPV ss std static 55/7.1/5.0/4.9/5.1 mm;
     # docs/estimation.md §7).
     warmup_bursts: int = 20
-    # Effective time of a depth measurement relative to the mean time of its frames: z_m equals
-    # z(t_b + τ). Measured on the reference simulator by regressing the z_m error on the true ż
-    # over the moving scenarios (τ = 25–40 ms, hil run --fast): the bracket is centred on the
-    # predicted depth ahead and the cost is only approximately a parabola, so the vertex leans
-    # toward the bracket centre, i.e. toward where the target is going.
-    measurement_time_offset_s: float = 0.03
+    # Effective time of a depth measurement relative to the mean exposure mid-time of its frames
+    # (z_m equals z(t_b + τ)): this fixed part (0: the exposure timing) plus τ̂ estimated online
+    # from the innovations (noise_adapt; docs/estimation.md §9). It was a constant 0.03 s fitted
+    # to the reference simulator's lean (−13 ms on a held-out lens).
+    measurement_time_offset_s: float = 0.0
+    # Measurement noise and time offset adapted from the innovations; honest σ per estimator
+    noise_adapt: NoiseAdaptConfig = field(default_factory=NoiseAdaptConfig)
     # LPV observer: error poles and the declared ρ range of the gain schedule
     # rad/s: the transported z_m steps once a burst (~1 s) with ~0.5 % noise while ρ is nearly
     # noise-free, so the observer should average ~10 bursts (decay 0.12/s; measured on the
@@ -180,6 +183,9 @@ class Estimate:
     tilt_deg: float
     focus_counts: int | None
     inlier_fraction: float
+    # σ per estimator (measured, cf1, cf2, lpv, kf; None where it has no value); sigma_m is the
+    # best's. Honest σ: adapted noise, correlated measurements, Student-t start-up factor.
+    sigma_by: dict[str, float | None] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -575,18 +581,23 @@ class Pipeline:
             self._step_filters(dt, s, sdot, rho if rho is not None else 0.0, ratio)
         pending, self._pending = self._pending, None
         if pending is not None and pending.z_m is not None and pending.sigma_m is not None:
+            # the fit's σ (cost noise) and the parabola model's error at the vertex's offset
+            sigma_z = math.hypot(
+                pending.sigma_m,
+                abs(self.lens.dz_dv(pending.v_hat_mm))
+                * model_sigma_v_mm(pending.v_mm, pending.v_hat_mm, cfg.focus_measure),
+            )
             s_b = self._size_at(pending.t + cfg.measurement_time_offset_s, t, s)
+            # the lean τ̂ of the vertex, estimated online on the size invariant (noise.py)
+            rate = self._diff_rate or 0.0
+            tau = self._unc.observe_size(math.log(pending.z_m * s_b), rate, sigma_z / pending.z_m)
+            s_b *= math.exp(rate * tau)
             size_m = pending.z_m * s_b
             self._size_meas = size_m
             self._last_measured = pending.z_m
             measured_t = pending.t
             y_now = size_m / s
-            sigma_now = pending.sigma_m * y_now / pending.z_m
-            kf_sigma = max(
-                sigma_now,
-                cfg.kf_noise.sigma_v_mm
-                * abs(self.lens.dz_dv(self.lens.v_from_depth(max(self._kf.z or y_now, 0.1)))),
-            )
+            sigma_now = sigma_z * y_now / pending.z_m
             self._n_accepted += 1
             if self._n_accepted <= cfg.cf2_size_bursts and cfg.cf2_nominal_size_m is None:
                 n = self._n_accepted
@@ -594,8 +605,14 @@ class Pipeline:
                 self._cf2_size = prev_size + (size_m - prev_size) / n  # running mean
             if not self._initialised:
                 self._kf.reset(y_now, max(sigma_now, 1e-3))
+                self._unc.start(max(sigma_now, 1e-3), pending.frame_indices)
                 self._initialised = True
             else:
+                # the noise the KF is told is adapted from its innovations (noise.py)
+                innov = y_now - (self._kf.z or y_now)
+                kf_sigma = self._unc.measurement(
+                    innov, sigma_now, self._kf.p, pending.frame_indices
+                )
                 self._kf.update(y_now, kf_sigma)
             if self._n_accepted <= cfg.warmup_bursts:
                 self._hand_over(y_now)
@@ -637,6 +654,13 @@ class Pipeline:
         self._lpv = LPVObserver(self.lpv_gains)
         self._kf = DepthKF(cfg.kf_noise)
         self._diff = Differentiator(cfg.differentiator_omega)
+        self._unc = Uncertainty(
+            cfg.kf_noise,
+            cfg.noise_adapt,
+            cf1_k=cfg.cf1_k,
+            cf2_gains=self.cf2_gains,
+            lpv=self.lpv_gains,
+        )
         self._vel_cam = VelocityEstimator(cfg.differentiator_omega / 3)
         self._vel_world = VelocityEstimator(cfg.differentiator_omega / 3)
         self._size_meas = None  # R_m of the last accepted burst
@@ -656,6 +680,7 @@ class Pipeline:
         self._cf1.reset(z0)
         self._cf2.reset(z0)
         self._lpv.reset(z0, b0)
+        self._unc.hand_over()
 
     def _step_filters(self, dt: float, s: float, sdot: float, rho: float, ratio: float) -> None:
         assert self._size_meas is not None
@@ -673,6 +698,7 @@ class Pipeline:
         self._cf2.step(dt, y0, inv_rate * cf2_size, lam)
         self._lpv.step(dt, rho, y0, lam)
         self._kf.predict(ratio, dt)
+        self._unc.predict(dt, ratio, rho, self._kf.z or y0)
 
     def _make_estimate(
         self,
@@ -687,6 +713,7 @@ class Pipeline:
     ) -> Estimate:
         cfg = self.config
         depth: dict[str, float | None] = {name: self._depth(name) for name in ESTIMATORS}
+        sigma_by = {n: self._unc.sigma(n) if v is not None else None for n, v in depth.items()}
         z = depth[cfg.best]
         h, w = frame.image.shape[:2]
         dt = 0.0 if self._prev_pos_t is None else frame.t - self._prev_pos_t
@@ -705,7 +732,7 @@ class Pipeline:
             measured_t=measured_t,
             best=cfg.best,
             z_m=z,
-            sigma_m=self._kf.sigma if z is not None else None,
+            sigma_m=sigma_by[cfg.best] if z is not None else None,
             beta_m_s=self._cf2.beta if self._initialised else None,
             lpv_b_m_s=self._lpv.b if self._initialised else None,
             size_m=None if z is None else z * s,
@@ -720,4 +747,5 @@ class Pipeline:
             tilt_deg=tag.tilt_deg,
             focus_counts=tag.focus_counts,
             inlier_fraction=obs.inlier_fraction,
+            sigma_by=sigma_by,
         )

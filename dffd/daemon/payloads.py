@@ -131,6 +131,11 @@ class Payloads:
             best=best,
             z_m=_fin(est.z_m),
             sigma_m=nonneg(est.sigma_m),
+            sigmas_m=models.SigmaByEstimator(
+                **{k: nonneg(est.sigma_by.get(k)) for k in ("measured", "cf1", "cf2", "lpv", "kf")}
+            )
+            if est.sigma_by
+            else None,
             beta_m_s=_fin(est.beta_m_s),
             size_m=nonneg(est.size_m),
             r_px=nonneg(est.r_px),

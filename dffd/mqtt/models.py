@@ -74,6 +74,18 @@ class DepthByEstimator(BaseModel):
     kf: Meters | None = Field(description="time-varying Kalman filter; null before initialisation")
 
 
+class SigmaByEstimator(BaseModel):
+    """1σ of each estimator's depth, metres; null where it has no value."""
+
+    model_config = _STRICT
+
+    measured: NonNeg | None = Field(default=None, description="σ of z_m (the adapted fit σ)")
+    cf1: NonNeg | None = Field(default=None, description="σ of CF1")
+    cf2: NonNeg | None = Field(default=None, description="σ of CF2")
+    lpv: NonNeg | None = Field(default=None, description="σ of the LPV observer")
+    kf: NonNeg | None = Field(default=None, description="σ of the Kalman filter")
+
+
 class Estimate(Payload):
     """``…/estimate``: one per tracking frame."""
 
@@ -85,6 +97,10 @@ class Estimate(Payload):
     best: EstimatorName = Field(description="which estimator z_m and sigma_m come from")
     z_m: Meters | None = Field(description="the best estimate of depth")
     sigma_m: Annotated[float, Field(ge=0)] | None = Field(description="1σ of z_m")
+    sigmas_m: SigmaByEstimator | None = Field(
+        default=None,
+        description="1σ of every estimator's depth (adapted noise; docs/estimation.md §9)",
+    )
     beta_m_s: float | None = Field(
         default=None, description="CF2's estimate of the size-rate bias β"
     )

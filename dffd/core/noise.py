@@ -1,0 +1,173 @@
+"""Measurement noise and time offset adapted online (docs/estimation.md §9).
+
+Three small estimators, each a statistic of the Kalman filter's innovations ``ν = y − ẑ⁻`` at
+the accepted bursts and of their predicted variance ``S``:
+
+* :class:`InnovationScale` — the ratio ``λ`` of the true measurement variance to the one the
+  burst fit states (its delta-method σ, the prior: ``λ = 1``), by innovation-covariance
+  matching (Sage–Husa): ``λ ← λ (1 − d + d ν²/S)`` with ``d = 1/(n0 + k)`` (a running mean
+  from a prior worth ``n0`` innovations) that becomes an exponential window of ``W`` bursts;
+  bounded, and each ``ν²/S`` clipped so that one gross first measurement cannot blow it up.
+  Its degrees of freedom (``n0`` + the innovations seen, up to ``W``) give the Student-t
+  inflation :func:`student_factor` of every published σ: with a variance estimated from ``n``
+  innovations the 2σ interval must widen by ``t_n/z`` — ×6.4 after one, ×1.3 after five, ×1.05
+  after thirty — so the first estimates carry a σ that covers their error without a tuned count.
+* :class:`TimeOffset` — the lean ``τ`` of a depth measurement (``z_m = z(t_b + τ)``, ``t_b`` the
+  mean exposure mid-time of its frames) by recursive least squares on the size invariant
+  (``ln(z_m s(t_b)) = ln R − τ ρ``), from the prior ``τ = 0`` that the exposure timing gives;
+  bounded. (A regression of the innovations on ż would also pick up the filter's own lag.)
+* :func:`shared_frame_correlation` — consecutive rolling bursts share an end frame, so their
+  errors are correlated: the vertex of a three-point fit is, to first order, the difference of
+  the two end costs over the curvature, so one shared end gives a correlation of ½.
+
+Pure and deterministic; no clock.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+from scipy import stats
+
+# The burst's parabola is a model of the cost: its vertex moves by ``slope × `` the true offset
+# of the sharp setting from the bracket centre, so a vertex far from the centre carries a model
+# error ``|1 − slope| × offset`` that no cost noise shows. Slopes measured on the reference
+# optics only (docs/estimation.md §8: 0.925 for the peak gradient, 1.005–1.014 for the edge
+# second moment; the aberrated optics gave 0.92 / 0.98–1.0, not used).
+MODEL_SLOPE_ERROR = {"peak_gradient": 0.075, "edge_variance": 0.014}
+# Two-sided 2σ probability of a Gaussian (the coverage an honest σ gives).
+_TWO_SIGMA_P = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))  # 0.97725
+# Above this many degrees of freedom the Student-t factor is ~1 (1.0009 at 1000).
+_MAX_DOF = 1000
+
+
+@dataclass(frozen=True, slots=True)
+class NoiseAdaptConfig:
+    """Parameters of the online noise and time-offset estimates (docs/estimation.md §9)."""
+
+    # The fit's own σ counts as this many innovations (the prior λ = 1): one, so the first
+    # published estimates carry the Student-t factor of one degree of freedom.
+    prior_innovations: float = 1.0
+    # Memory of λ in accepted bursts once the running mean has seen that many (~27 s at the
+    # rolling bracket's 2.2 Hz): long enough for a variance estimate within ±20 % (√(2/60)),
+    # short enough to follow a depth change of the noise the fit's σ does not model.
+    window_bursts: float = 60.0
+    scale_min: float = 0.25  # σ no smaller than ½ of the fit's own σ
+    scale_max: float = 1.0e4  # σ at most 100× the fit's σ
+    # One innovation moves λ by at most this factor's worth (ν²/S clipped): a gross first
+    # burst (full-range bracket) must not pin λ high for a minute.
+    innovation_clip: float = 25.0
+    # Time offset: prior σ of τ (a few frame periods) and the bound of τ̂.
+    tau_prior_sigma_s: float = 0.05
+    tau_max_s: float = 0.1
+    adapt_time_offset: bool = True
+
+
+def student_factor(dof: float) -> float:
+    """Factor that widens a Gaussian 2σ interval to a Student-t one with ``dof`` degrees of
+    freedom (a variance estimated from ``dof`` samples): t⁻¹(0.977; dof) / Φ⁻¹(0.977)."""
+    return _student_factor(max(1, min(round(dof), _MAX_DOF)))
+
+
+def model_sigma_v_mm(v_mm: tuple[float, ...], v_hat_mm: float, measure: str) -> float:
+    """σ of the vertex (mm of v) from the parabola model's error at its offset in the bracket."""
+    if not v_mm or not math.isfinite(v_hat_mm):
+        return 0.0
+    mid = 0.5 * (min(v_mm) + max(v_mm))
+    return MODEL_SLOPE_ERROR.get(measure, max(MODEL_SLOPE_ERROR.values())) * abs(v_hat_mm - mid)
+
+
+def shared_frame_correlation(previous: tuple[int, ...], current: tuple[int, ...]) -> float:
+    """Correlation of two bursts' depth errors from the frames they share (0, ½ or more)."""
+    if not previous or not current:
+        return 0.0
+    shared = len(set(previous) & set(current))
+    # the vertex ≈ (g₋ − g₊)/curvature: each end frame carries half of the noise variance
+    return min(0.5 * shared, 0.9)
+
+
+class InnovationScale:
+    """Ratio λ of the true measurement variance to the fit's stated one, from ν²/S."""
+
+    def __init__(self, config: NoiseAdaptConfig) -> None:
+        self.config = config
+        self.scale = 1.0
+        self.count = 0  # innovations seen
+
+    @property
+    def dof(self) -> float:
+        """Degrees of freedom of the estimate: the prior's plus the innovations (≤ window)."""
+        c = self.config
+        return min(c.prior_innovations + self.count, c.window_bursts)
+
+    @property
+    def factor(self) -> float:
+        """Student-t inflation of a σ that rests on this estimate."""
+        return student_factor(self.dof)
+
+    def update(self, innovation: float, s: float) -> float:
+        """Fold in one innovation with predicted variance ``s`` (computed with the current λ)."""
+        c = self.config
+        if not (s > 0 and math.isfinite(innovation)):
+            return self.scale
+        q = min(innovation * innovation / s, c.innovation_clip)
+        self.count += 1
+        d = 1.0 / min(c.prior_innovations + self.count, c.window_bursts)
+        scale = self.scale * (1.0 - d + d * q)
+        self.scale = min(max(scale, c.scale_min), c.scale_max)
+        return self.scale
+
+
+class TimeOffset:
+    """τ̂ of ``z_m = z(t_b + τ)`` by recursive least squares on the size invariant.
+
+    Under ``z s = R`` a measurement gives ``ln(z_m s(t_b)) = ln R − τ ρ(t_b)`` to first order
+    (``ρ = ṡ/s``): regressing those on ``[1, −ρ]`` over the bursts estimates ``τ`` free of any
+    filter's lag (R is a constant: no dynamics enter). Prior ``τ = 0`` (the exposure timing),
+    a diffuse ``ln R``; without motion there is no information and τ̂ stays at the prior.
+    """
+
+    def __init__(self, config: NoiseAdaptConfig) -> None:
+        self.config = config
+        self._theta = (0.0, 0.0)  # ln R, τ
+        # covariance of (ln R, τ): diffuse size, the prior σ of τ
+        self._p = (1.0e6, 0.0, 0.0, config.tau_prior_sigma_s**2)
+        self._started = False
+
+    @property
+    def tau_s(self) -> float:
+        """τ̂ (s), bounded by ``tau_max_s``; 0 when not adapting."""
+        if not self.config.adapt_time_offset:
+            return 0.0
+        return min(max(self._theta[1], -self.config.tau_max_s), self.config.tau_max_s)
+
+    @property
+    def sigma_s(self) -> float:
+        """Standard deviation of τ̂."""
+        return math.sqrt(self._p[3])
+
+    def update(self, log_size: float, rho: float, var: float) -> float:
+        """One burst: ``log_size = ln(z_m s(t_b))``, the size rate ``rho`` at ``t_b`` (1/s) and
+        the variance of ``log_size`` (the measurement's relative variance); returns τ̂."""
+        if not (var > 0 and math.isfinite(log_size) and math.isfinite(rho)):
+            return self.tau_s
+        if not self._started:
+            self._theta = (log_size, self._theta[1])
+            self._started = True
+        h0, h1 = 1.0, -rho
+        p00, p01, p10, p11 = self._p
+        ph0, ph1 = p00 * h0 + p01 * h1, p10 * h0 + p11 * h1  # P h
+        s = h0 * ph0 + h1 * ph1 + var
+        k0, k1 = ph0 / s, ph1 / s
+        resid = log_size - (self._theta[0] * h0 + self._theta[1] * h1)
+        self._theta = (self._theta[0] + k0 * resid, self._theta[1] + k1 * resid)
+        # P ← P − K (P h)ᵀ
+        self._p = (p00 - k0 * ph0, p01 - k0 * ph1, p10 - k1 * ph0, p11 - k1 * ph1)
+        return self.tau_s
+
+
+@functools.lru_cache(maxsize=_MAX_DOF)
+def _student_factor(dof: int) -> float:
+    return float(stats.t.ppf(_TWO_SIGMA_P, dof) / stats.norm.ppf(_TWO_SIGMA_P))

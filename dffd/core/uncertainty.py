@@ -1,0 +1,238 @@
+"""Error covariance of every estimator, and the σ each publishes (docs/estimation.md §9).
+
+Every estimator is linear in its inputs, so its error ``e = x − x̂`` obeys a linear recursion
+driven by the process noise and by the error ``ε`` of the measurement it currently holds. The
+held measurement is the transported ``y = R_m/s`` of the last accepted burst: between bursts
+``ε`` scales with the size ratio exactly as ``y`` does, and at a burst it is replaced by the
+new measurement's error, correlated with the old one when the two bursts share a frame.
+:class:`ErrorCovariance` carries the covariance of ``[e, ε]`` for one estimator:
+
+* fixed-gain filters (CF1, CF2, LPV): over a frame ``e ← Φ e − g ε``, ``ε ← φ ε`` with ``Φ``
+  the filter's own exact transition and ``g`` its exact response to a unit held ``y``
+  (:func:`dffd.core.filters.exp_input2`, the discretisation the filters step with);
+* the Kalman filter: ``e ← Φ e`` between bursts and ``e ← (I − K C) e − K ε`` at an update with
+  the gain it used — its own P assumes white measurement noise, this one does not.
+
+:class:`Uncertainty` runs one per estimator next to the filters, adapts the measurement noise
+and the time offset from the Kalman filter's innovations (:mod:`dffd.core.noise`), and publishes
+``σ = √P_zz × t-factor`` per estimator. Pure; numpy on 3×3 matrices.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from dffd.core.filters import DepthKF, KFNoise, LPVGains, exp_input2
+from dffd.core.noise import (
+    InnovationScale,
+    NoiseAdaptConfig,
+    TimeOffset,
+    shared_frame_correlation,
+)
+
+FloatArray = npt.NDArray[np.float64]
+
+FIXED_GAIN = ("cf1", "cf2", "lpv")
+
+
+class ErrorCovariance:
+    """Covariance of ``[e (n states), ε]`` of one linear estimator (``n`` = 1 or 2)."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.p: FloatArray = np.zeros((n + 1, n + 1))
+
+    @property
+    def var_z(self) -> float:
+        """Variance of the depth error."""
+        return max(float(self.p[0, 0]), 0.0)
+
+    def propagate(self, phi: FloatArray, g: FloatArray, ratio: float, q: FloatArray) -> None:
+        """One frame: ``e ← phi e − g ε + w`` (``cov w = q``), ``ε ← ratio ε``."""
+        n = self.n
+        t = np.zeros((n + 1, n + 1))
+        t[:n, :n] = phi
+        t[:n, n] = -g
+        t[n, n] = ratio
+        p = t @ self.p @ t.T
+        p[:n, :n] += q
+        self.p = p
+
+    def replace_measurement(self, var_new: float, corr: float) -> None:
+        """The held measurement becomes a new one of variance ``var_new``, correlated ``corr``
+        with the old one: ``ε ← c ε + u``, ``c = corr σ_new/σ_old``, var u = (1−corr²) var_new."""
+        n = self.n
+        var_old = float(self.p[n, n])
+        c = corr * math.sqrt(var_new / var_old) if var_old > 0 and corr > 0 else 0.0
+        t = np.eye(n + 1)
+        t[n, n] = c
+        p = t @ self.p @ t.T
+        p[n, n] += (1.0 - corr * corr) * var_new if c else var_new
+        self.p = p
+
+    def kalman_update(self, k: FloatArray) -> None:
+        """``e ← (I − K C) e − K ε`` (the held measurement just replaced)."""
+        n = self.n
+        t = np.eye(n + 1)
+        t[:n, 0] -= k
+        t[:n, n] = -k
+        self.p = t @ self.p @ t.T
+
+    def innovation_variance(self) -> float:
+        """Variance of the innovation ``ν = y − ẑ = e_z + ε`` (``e = x − x̂``)."""
+        n = self.n
+        return float(self.p[0, 0] + self.p[n, n] + 2.0 * self.p[0, n])
+
+    def start(self, var_meas: float, var_second: float) -> None:
+        """A filter initialised at a measurement: ``e_z = −ε`` exactly."""
+        n = self.n
+        p = np.zeros((n + 1, n + 1))
+        p[0, 0] = p[n, n] = var_meas
+        p[0, n] = p[n, 0] = -var_meas
+        if n == 2:
+            p[1, 1] = var_second
+        self.p = p
+
+    def copy_from(self, other: ErrorCovariance) -> None:
+        """Take ``other``'s depth error and measurement block (a seeded filter; others zeroed)."""
+        n, m = self.n, other.n
+        p = np.zeros((n + 1, n + 1))
+        idx_self = [0, n] if n == 1 else [0, 1, n]
+        idx_other = [0, m] if n == 1 else [0, 1, m]
+        p[np.ix_(idx_self, idx_self)] = other.p[np.ix_(idx_other, idx_other)]
+        self.p = p
+
+
+class Uncertainty:
+    """Per-estimator error covariances, the adapted measurement noise and time offset."""
+
+    def __init__(
+        self,
+        noise: KFNoise,
+        adapt: NoiseAdaptConfig,
+        *,
+        cf1_k: float,
+        cf2_gains: tuple[float, float],
+        lpv: LPVGains,
+    ) -> None:
+        self.noise = noise
+        self.adapt = adapt
+        self.scale = InnovationScale(adapt)
+        self.offset = TimeOffset(adapt)
+        self._cf1_k = cf1_k
+        self._cf2 = cf2_gains
+        self._lpv = lpv
+        self.errors = {
+            "cf1": ErrorCovariance(1),
+            "cf2": ErrorCovariance(2),
+            "lpv": ErrorCovariance(2),
+            "kf": ErrorCovariance(2),
+        }
+        self._frames: tuple[int, ...] = ()
+        self.measured_sigma: float | None = None  # adapted σ of the last measurement
+        self.started = False
+
+    @property
+    def time_offset_s(self) -> float:
+        """τ̂: a depth measurement refers to its frames' mean exposure time plus this."""
+        return self.offset.tau_s
+
+    def measurement_sigma(self, sigma_fit: float) -> float:
+        """The fit's σ scaled by the adapted noise ratio: the σ the filters are told."""
+        return sigma_fit * math.sqrt(self.scale.scale)
+
+    def sigma(self, name: str) -> float | None:
+        """Published σ of estimator ``name`` (None before the filters start)."""
+        if name == "measured":
+            return None if self.measured_sigma is None else self.measured_sigma * self.factor
+        err = self.errors.get(name)
+        if err is None or not self.started:
+            return None
+        return math.sqrt(err.var_z) * self.factor
+
+    @property
+    def factor(self) -> float:
+        """Student-t inflation for the degrees of freedom of the noise estimate."""
+        return self.scale.factor
+
+    def start(self, sigma_meas: float, frames: tuple[int, ...]) -> None:
+        """The Kalman filter starts at a measurement of σ ``sigma_meas`` (the others follow)."""
+        var = sigma_meas * sigma_meas
+        self.errors["kf"].start(var, self.noise.sigma_b0**2)
+        for name in FIXED_GAIN:
+            self.errors[name].copy_from(self.errors["kf"])
+        self._frames = frames
+        self.measured_sigma = sigma_meas
+        self.started = True
+
+    def predict(self, dt: float, ratio: float, rho: float, z: float) -> None:
+        """Propagate every error covariance over one step of the filters."""
+        if not self.started or dt <= 0:
+            return
+        n = self.noise
+        qz = (n.sigma_rho * z) ** 2 * dt
+        qb = n.sigma_b**2 * dt
+        q2 = np.diag([qz, qb])
+        lam = -rho
+        # CF1: ẑ' = −k ẑ + k y + ψ
+        k = self._cf1_k
+        e = math.exp(-k * dt)
+        near = abs(lam + k) * dt < 1e-9
+        g1 = k * dt * e if near else k * (math.exp(lam * dt) - e) / (lam + k)
+        self.errors["cf1"].propagate(np.array([[e]]), np.array([g1]), ratio, np.array([[qz]]))
+        k1, k2 = self._cf2
+        phi, g = exp_input2(np.array([[-k1, 1.0], [-k2, 0.0]]), np.array([k1, k2]), lam, dt)
+        self.errors["cf2"].propagate(phi, g, ratio, q2)
+        gl = self._lpv
+        kl = gl.k1_0 - min(max(rho, gl.rho_min), gl.rho_max)
+        m = np.array([[-rho - kl, 1.0], [-gl.k2, 0.0]])
+        phi, g = exp_input2(m, np.array([kl, gl.k2]), lam, dt)
+        self.errors["lpv"].propagate(phi, g, ratio, q2)
+        # the KF's own transition (its b enters through g_k), no held measurement in between
+        phi_kf = DepthKF.transition(ratio, dt)
+        q_kf = np.array(
+            [[qz + qb * dt * dt / 3.0, qb * dt / 2.0], [qb * dt / 2.0, qb]]
+        )  # as DepthKF.predict: the b random walk integrated over the step
+        self.errors["kf"].propagate(phi_kf, np.zeros(2), ratio, q_kf)
+
+    def observe_size(self, log_size: float, rho: float, rel_sigma_fit: float) -> float:
+        """A burst's ``ln(z_m s(t_b))`` at size rate ``rho``: update τ̂ (returned)."""
+        var = self.scale.scale * rel_sigma_fit * rel_sigma_fit
+        return self.offset.update(log_size, rho, var)
+
+    def measurement(
+        self,
+        innovation: float,
+        sigma_fit: float,
+        kf_p: FloatArray,
+        frames: tuple[int, ...],
+    ) -> float:
+        """An accepted burst: adapt λ from the KF's innovation (``y − ẑ⁻``), replace the held
+        measurement everywhere, apply the KF's update; returns the σ the KF is told."""
+        corr = shared_frame_correlation(self._frames, frames)
+        self._frames = frames
+        kf = self.errors["kf"]
+        # innovation variance of the KF with the current λ (its error and the new measurement's)
+        var_now = self.measurement_sigma(sigma_fit) ** 2
+        probe = ErrorCovariance(2)
+        probe.p = kf.p.copy()
+        probe.replace_measurement(var_now, corr)
+        s = probe.innovation_variance()
+        self.scale.update(innovation, s)
+        sigma = self.measurement_sigma(sigma_fit)
+        var = sigma * sigma
+        for err in self.errors.values():
+            err.replace_measurement(var, corr)
+        p00 = float(kf_p[0, 0])
+        gain = np.array([p00, float(kf_p[1, 0])]) / (p00 + var)
+        kf.kalman_update(gain)
+        self.measured_sigma = sigma
+        return sigma
+
+    def hand_over(self) -> None:
+        """The fixed-gain filters were seeded from the KF: they inherit its error covariance."""
+        for name in FIXED_GAIN:
+            self.errors[name].copy_from(self.errors["kf"])

@@ -1,0 +1,138 @@
+"""Honest σ: the coverage/NEES metric, the innovation-based noise scale, the time-offset
+estimate and the error-covariance propagation of every estimator (against Monte Carlo)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dffd.consistency import consistency_stats, in_band
+from dffd.core.filters import CF1, CF2, DepthKF, KFNoise, LPVGains, LPVObserver, cf2_gains
+from dffd.core.noise import (
+    InnovationScale,
+    NoiseAdaptConfig,
+    TimeOffset,
+    shared_frame_correlation,
+    student_factor,
+)
+from dffd.core.uncertainty import Uncertainty
+
+
+def test_coverage_and_nees_of_an_honest_and_of_an_overconfident_sigma() -> None:
+    rng = np.random.default_rng(1)
+    n = 20000
+    t = np.linspace(0.0, 10.0, n)
+    sigma = np.full(n, 0.02)
+    err = rng.normal(0.0, 0.02, n)
+    honest = consistency_stats(t, err, sigma, settle_until=5.0)
+    assert honest["coverage_2sigma"] == pytest.approx(0.954, abs=0.01)
+    assert honest["nees"] == pytest.approx(1.0, abs=0.05)
+    assert honest["ss_coverage_2sigma"] == pytest.approx(0.954, abs=0.015)
+    assert in_band(honest["coverage_2sigma"]) is True
+    small = consistency_stats(t, err, sigma / 3.0, settle_until=5.0)
+    assert small["nees"] == pytest.approx(9.0, rel=0.05)
+    assert small["coverage_2sigma"] < 0.6
+    assert in_band(small["coverage_2sigma"]) is False
+    # the first sample in time, and samples without a σ left out
+    stats = consistency_stats([2.0, 1.0, 3.0], [0.1, -0.3, 0.2], [0.1, 0.2, math.nan], 0.0)
+    assert stats["n_sigma"] == 2
+    assert stats["first_abs_err_m"] == pytest.approx(0.3)
+    assert stats["first_sigma_m"] == pytest.approx(0.2)
+
+
+def test_student_factor_widens_the_first_estimates_and_vanishes_later() -> None:
+    assert student_factor(1) == pytest.approx(13.97 / 2.0, rel=0.05)  # t(0.977; 1) ≈ 13.97
+    assert 1.2 < student_factor(5) < 1.45
+    assert student_factor(60) == pytest.approx(1.0, abs=0.03)
+    assert student_factor(0.2) == student_factor(1)
+
+
+def test_innovation_scale_finds_the_true_noise_ratio() -> None:
+    rng = np.random.default_rng(2)
+    est = InnovationScale(NoiseAdaptConfig(window_bursts=400.0))
+    s_stated = 1e-4  # the variance the fit states; the truth is 4x that
+    for _ in range(800):
+        s = est.scale * s_stated  # the predicted innovation variance with the current λ
+        est.update(rng.normal(0.0, math.sqrt(4.0 * s_stated)), s)
+    assert est.scale == pytest.approx(4.0, rel=0.15)
+    assert est.dof == 400.0
+    # one gross innovation moves λ by a bounded amount
+    fresh = InnovationScale(NoiseAdaptConfig())
+    fresh.update(100.0, 1e-4)
+    assert fresh.scale <= NoiseAdaptConfig().innovation_clip
+
+
+def test_time_offset_recovers_the_lean_of_the_measurements() -> None:
+    rng = np.random.default_rng(3)
+    tau, log_r = 0.03, math.log(0.04)
+    est = TimeOffset(NoiseAdaptConfig())
+    for k in range(300):
+        rho = 0.3 * math.sin(0.2 * k)
+        est.update(log_r - tau * rho + rng.normal(0.0, 0.002), rho, 0.002**2)
+    assert est.tau_s == pytest.approx(tau, abs=0.005)
+    # no motion, no information: the prior (the exposure timing) stands
+    still = TimeOffset(NoiseAdaptConfig())
+    for _ in range(50):
+        still.update(log_r + rng.normal(0.0, 0.002), 0.0, 0.002**2)
+    assert still.tau_s == pytest.approx(0.0, abs=1e-9)
+
+
+def test_shared_frames_correlate_consecutive_bursts() -> None:
+    assert shared_frame_correlation((), (1, 2, 3)) == 0.0
+    assert shared_frame_correlation((1, 2, 3), (4, 5, 6)) == 0.0
+    assert shared_frame_correlation((1, 4, 7), (7, 10, 13)) == 0.5
+
+
+def test_propagated_sigma_matches_monte_carlo_for_every_estimator() -> None:
+    """Filters fed with correlated burst noise (rolling bursts sharing an end frame): the spread
+    of each estimator's error over many runs equals the σ the propagation predicts."""
+    rng = np.random.default_rng(4)
+    runs, frames, every, dt = 300, 90, 7, 1 / 30
+    sigma_meas, z0, rho = 0.02, 5.0, 0.05  # the target recedes slowly: z = z0 e^{−ρt}
+    # no disturbance: the truth has b = 0, so its prior σ must be ~0 for the runs to sample it
+    noise = KFNoise(sigma_rho=0.0, sigma_b=1e-6, sigma_b0=1e-6)
+    adapt = NoiseAdaptConfig(window_bursts=1e9, prior_innovations=1e9)  # λ stays 1
+    k1, k2 = cf2_gains(0.04, 0.015, 0.05)
+    gains = LPVGains.from_poles(0.6, 0.8, -2.0, 2.0)
+    errs: dict[str, list[float]] = {"cf1": [], "cf2": [], "lpv": [], "kf": []}
+    predicted: dict[str, float] = {}
+    ratio = math.exp(-rho * dt)  # s_k/s_{k+1} = z_{k+1}/z_k: ż = −ρ z
+    for _ in range(runs):
+        cf1, cf2, lpv, kf = CF1(1.0), CF2(k1, k2), LPVObserver(gains), DepthKF(noise)
+        unc = Uncertainty(noise, adapt, cf1_k=1.0, cf2_gains=(k1, k2), lpv=gains)
+        # end-frame noise: each burst's error is the mean of its two end frames' errors
+        ends = rng.normal(0.0, sigma_meas * math.sqrt(2.0), frames // every + 2)
+        z, y0, n_burst = z0, None, 0
+        for k in range(frames):
+            if k > 0 and y0 is not None:
+                psi = (z * ratio - z) / dt  # the exact mean ż over the step
+                for f in (cf1, cf2):
+                    f.step(dt, y0, psi, -rho)
+                lpv.step(dt, rho, y0, -rho)
+                kf.predict(ratio, dt)
+                unc.predict(dt, ratio, rho, z)
+                y0 *= ratio
+                z *= ratio
+            if k % every == 0:
+                eps = 0.5 * (ends[n_burst] + ends[n_burst + 1])
+                frames_of = (2 * n_burst, 2 * n_burst + 1, 2 * n_burst + 2)
+                n_burst += 1
+                y = z + eps
+                if kf.x is None:
+                    kf.reset(y, sigma_meas)
+                    unc.start(sigma_meas, frames_of)
+                    for f in (cf1, cf2):
+                        f.reset(y)
+                    lpv.reset(y)
+                else:
+                    s = unc.measurement(y - (kf.z or y), sigma_meas, kf.p, frames_of)
+                    kf.update(y, s)
+                y0 = y
+        for name, f in (("cf1", cf1), ("cf2", cf2), ("lpv", lpv), ("kf", kf)):
+            errs[name].append(z - (f.z or 0.0))
+            predicted[name] = math.sqrt(unc.errors[name].var_z)
+    for name, e in errs.items():
+        spread = float(np.std(e))
+        assert spread == pytest.approx(predicted[name], rel=0.15), name
