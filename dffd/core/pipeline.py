@@ -590,7 +590,9 @@ class Pipeline:
             s_b = self._size_at(pending.t + cfg.measurement_time_offset_s, t, s)
             # the lean τ̂ of the vertex, estimated online on the size invariant (noise.py)
             rate = self._diff_rate or 0.0
-            tau = self._unc.observe_size(math.log(pending.z_m * s_b), rate, sigma_z / pending.z_m)
+            tau = self._unc.observe_size(
+                math.log(pending.z_m * s_b), rate, sigma_z / pending.z_m, pending.frame_indices
+            )
             s_b *= math.exp(rate * tau)
             size_m = pending.z_m * s_b
             self._size_meas = size_m

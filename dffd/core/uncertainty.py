@@ -120,8 +120,12 @@ class Uncertainty:
     ) -> None:
         self.noise = noise
         self.adapt = adapt
+        # λ: true/stated measurement variance, from consecutive size measurements (no dynamics)
         self.scale = InnovationScale(adapt)
+        # κ²: the KF's innovations against their predicted variance (model mismatch of any kind)
+        self.consistency = InnovationScale(adapt)
         self.offset = TimeOffset(adapt)
+        self._last_size: tuple[float, float, tuple[int, ...]] | None = None
         self._cf1_k = cf1_k
         self._cf2 = cf2_gains
         self._lpv = lpv
@@ -151,12 +155,12 @@ class Uncertainty:
         err = self.errors.get(name)
         if err is None or not self.started:
             return None
-        return math.sqrt(err.var_z) * self.factor
+        return math.sqrt(err.var_z * self.consistency.scale) * self.factor
 
     @property
     def factor(self) -> float:
-        """Student-t inflation for the degrees of freedom of the noise estimate."""
-        return self.scale.factor
+        """Student-t inflation for the degrees of freedom of the noise estimates."""
+        return max(self.scale.factor, self.consistency.factor)
 
     def start(self, sigma_meas: float, frames: tuple[int, ...]) -> None:
         """The Kalman filter starts at a measurement of σ ``sigma_meas`` (the others follow)."""
@@ -198,8 +202,19 @@ class Uncertainty:
         )  # as DepthKF.predict: the b random walk integrated over the step
         self.errors["kf"].propagate(phi_kf, np.zeros(2), ratio, q_kf)
 
-    def observe_size(self, log_size: float, rho: float, rel_sigma_fit: float) -> float:
-        """A burst's ``ln(z_m s(t_b))`` at size rate ``rho``: update τ̂ (returned)."""
+    def observe_size(
+        self, log_size: float, rho: float, rel_sigma_fit: float, frames: tuple[int, ...]
+    ) -> float:
+        """A burst's size measurement ``ln(z_m s(t_b))`` at size rate ``rho`` with the fit's
+        relative σ: update λ from its difference to the previous one (the size invariant holds
+        whatever the target does, so the difference is measurement noise only) and τ̂
+        (returned)."""
+        last, self._last_size = self._last_size, (log_size, rel_sigma_fit, frames)
+        if last is not None:
+            prev, prev_sigma, prev_frames = last
+            corr = shared_frame_correlation(prev_frames, frames)
+            var_d = rel_sigma_fit**2 + prev_sigma**2 - 2.0 * corr * rel_sigma_fit * prev_sigma
+            self.scale.update(log_size - prev, self.scale.scale * var_d)
         var = self.scale.scale * rel_sigma_fit * rel_sigma_fit
         return self.offset.update(log_size, rho, var)
 
@@ -210,8 +225,9 @@ class Uncertainty:
         kf_p: FloatArray,
         frames: tuple[int, ...],
     ) -> float:
-        """An accepted burst: adapt λ from the KF's innovation (``y − ẑ⁻``), replace the held
-        measurement everywhere, apply the KF's update; returns the σ the KF is told."""
+        """An accepted burst: check the KF's innovation (``y − ẑ⁻``) against its predicted
+        variance (κ²), replace the held measurement everywhere, apply the KF's update; returns
+        the σ the KF is told (the fit's, scaled by λ)."""
         corr = shared_frame_correlation(self._frames, frames)
         self._frames = frames
         kf = self.errors["kf"]
@@ -221,7 +237,7 @@ class Uncertainty:
         probe.p = kf.p.copy()
         probe.replace_measurement(var_now, corr)
         s = probe.innovation_variance()
-        self.scale.update(innovation, s)
+        self.consistency.update(innovation, s)
         sigma = self.measurement_sigma(sigma_fit)
         var = sigma * sigma
         for err in self.errors.values():
