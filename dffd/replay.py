@@ -2,9 +2,11 @@
 
 Runs the estimation core, configured from the service config exactly as the daemon configures
 it (:mod:`dffd.wiring`), on a recording (docs/design.md, recording format): one JSON line per
-tracking frame; with ``truth.csv``, an error table per estimator (bias, std, RMS, steady-state
-std after the settling time, p95 of |error|, in metres) is printed and written, and a plot of
-truth, ``z_m``, every estimator and the errors can be drawn.
+tracking frame, every causal estimator's depth and σ and the offline RTS smoother's
+(``smoothed``, :mod:`dffd.core.smoother`); with ``truth.csv``, an error table per estimator
+(bias, std, RMS, steady-state std after the settling time, p95 of |error|, in metres; 2σ
+coverage and NEES of the published σ) is printed and written, and a plot of truth, ``z_m``,
+every estimator and the errors can be drawn.
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ import numpy as np
 
 from dffd.config import ConfigError, load_config
 from dffd.consistency import consistency_stats
+from dffd.core.filters import KFTraceEvent
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
+from dffd.core.smoother import Smoothed, rts_smooth
 from dffd.core.tracking3d import Track3DEstimate
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.recording import RecordingError, RecordingReader, Truth
@@ -34,6 +38,7 @@ from dffd.wiring import pipeline_config
 logger = logging.getLogger(__name__)
 
 SCHEMA = 1
+SMOOTHED = "smoothed"  # the offline RTS smoother's estimator name (replay only)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -130,6 +135,8 @@ def replay(
 ) -> ReplayResult:
     """Run the core step over ``(Frame, FrameTag)`` pairs; collect JSON-ready lines."""
     core = CoreStep.build(config, lens)
+    trace: list[KFTraceEvent] = []  # the KF's steps, for the offline smoother
+    core.pipeline.record_kf(trace)
     if roi is not None:
         core.pipeline.acquire_roi(*roi)
     result = ReplayResult()
@@ -145,10 +152,28 @@ def replay(
                 result.reasons[reason] = result.reasons.get(reason, 0) + 1
         if out.estimate is not None:
             result.lines.append(estimate_line(out.estimate, step.track))
+            trace.append(KFTraceEvent("frame", frame=out.estimate.frame_index))
+    add_smoothed(result.lines, rts_smooth(trace))
     for reason, n in core.pipeline.burst_rejections.items():
         result.rejected += n
         result.reasons[f"dropped: {reason}"] = n
     return result
+
+
+def add_smoothed(lines: Sequence[dict[str, Any]], smoothed: dict[int, Smoothed]) -> None:
+    """Put the RTS-smoothed depth into every line as estimator ``smoothed`` (``depth_m`` and
+    ``sigma_m``). Its σ is the smoother's model σ times the inflation the causal KF's published
+    σ has over its own model σ at that frame (adapted noise, correlated measurements,
+    Student-t), so both are honest in the same sense."""
+    for line in lines:
+        sm = smoothed.get(line["frame"])
+        depth, sigma = line["depth_m"], line["sigma_m"]
+        depth[SMOOTHED] = None if sm is None else sm.z
+        sigma[SMOOTHED] = None
+        kf_sigma = sigma.get("kf")
+        p_filt = None if sm is None else float(sm.p_filtered[0, 0])
+        if sm is not None and kf_sigma is not None and p_filt is not None and p_filt > 0:
+            sigma[SMOOTHED] = sm.sigma_z * kf_sigma / math.sqrt(p_filt)
 
 
 def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str, Any]:
@@ -231,7 +256,7 @@ def summarize(
 ) -> dict[str, Any]:
     """The SUMMARY.json object of design.md §8 (``measured`` scored at each burst's mid-time)."""
     estimators: dict[str, Any] = {}
-    for name in ESTIMATORS:
+    for name in (*ESTIMATORS, SMOOTHED):
         ts: list[float] = []
         vals: list[float] = []
         sigmas: list[float] = []
@@ -308,8 +333,9 @@ def plot(lines: Sequence[dict[str, Any]], truth: Truth | None, path: Path) -> No
         "cf2": "tab:green",
         "lpv": "black",
         "kf": "tab:purple",
+        SMOOTHED: "tab:cyan",
     }
-    for name in ESTIMATORS:
+    for name in (*ESTIMATORS, SMOOTHED):
         pts = [
             (ln["measured_t_s"] if name == "measured" else ln["t_s"], ln["depth_m"][name])
             for ln in lines

@@ -67,13 +67,13 @@ def test_innovation_scale_finds_the_true_noise_ratio() -> None:
 def test_time_offset_recovers_the_lean_of_the_measurements() -> None:
     rng = np.random.default_rng(3)
     tau, log_r = 0.03, math.log(0.04)
-    est = TimeOffset(NoiseAdaptConfig())
+    est = TimeOffset(NoiseAdaptConfig(adapt_time_offset=True))
     for k in range(300):
         rho = 0.3 * math.sin(0.2 * k)
         est.update(log_r - tau * rho + rng.normal(0.0, 0.002), rho, 0.002**2)
     assert est.tau_s == pytest.approx(tau, abs=0.005)
     # no motion, no information: the prior (the exposure timing) stands
-    still = TimeOffset(NoiseAdaptConfig())
+    still = TimeOffset(NoiseAdaptConfig(adapt_time_offset=True))
     for _ in range(50):
         still.update(log_r + rng.normal(0.0, 0.002), 0.0, 0.002**2)
     assert still.tau_s == pytest.approx(0.0, abs=1e-9)

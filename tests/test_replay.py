@@ -57,7 +57,11 @@ def test_replay_writes_estimates_summary_and_plot(
     lines = [json.loads(x) for x in out.read_text().splitlines()]
     assert len(lines) > 50
     last = lines[-1]
-    assert set(last["depth_m"]) == {"measured", "cf1", "cf2", "lpv", "kf"}
+    assert set(last["depth_m"]) == {"measured", "cf1", "cf2", "lpv", "kf", "smoothed"}
+    # the offline smoother: at the last frame it is the filter; earlier it is never less sure
+    assert last["depth_m"]["smoothed"] == pytest.approx(last["depth_m"]["kf"], abs=1e-9)
+    mid = lines[len(lines) // 2]
+    assert 0 < mid["sigma_m"]["smoothed"] <= mid["sigma_m"]["kf"] + 1e-12
     assert last["best"] == "lpv"
     assert last["depth_m"]["cf1"] is None  # no known size given
     assert last["r_px"] > 0
@@ -74,6 +78,7 @@ def test_replay_writes_estimates_summary_and_plot(
     assert summary["schema"] == 1
     assert summary["settle_s"] == 3
     lpv = summary["estimators"]["lpv"]
+    assert "smoothed" in summary["estimators"]
     assert set(lpv) == {
         "n", "bias_m", "std_m", "rms_m", "ss_std_m", "p95_abs_m",
         # is the published σ honest: 2σ coverage and NEES, whole run and steady state

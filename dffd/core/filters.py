@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -246,6 +247,20 @@ class KFNoise:
     sigma_b0: float = 0.05  # m/s: initial uncertainty of b
 
 
+@dataclass(frozen=True, slots=True)
+class KFTraceEvent:
+    """One step of a :class:`DepthKF`: the state and covariance after it (and what made it)."""
+
+    kind: Literal["reset", "predict", "update", "frame"]
+    x: FloatArray | None = None
+    p: FloatArray | None = None
+    phi: FloatArray | None = None  # predict: the transition
+    q: FloatArray | None = None  # predict: the process noise added
+    y: float | None = None  # update: the measurement
+    r: float | None = None  # update: its variance
+    frame: int | None = None  # frame: the estimate of this frame index holds the last state
+
+
 class DepthKF:
     """Kalman filter on ``z_{k+1} = (s_k/s_{k+1}) z_k + g_k b_k``: the exact discretisation.
 
@@ -254,10 +269,13 @@ class DepthKF:
     exact response to a constant ``b``. Measurement noise grows ∝ z² (dz/dv ∝ z²).
     """
 
-    def __init__(self, noise: KFNoise) -> None:
+    def __init__(self, noise: KFNoise, trace: list[KFTraceEvent] | None = None) -> None:
         self.noise = noise
         self.x: FloatArray | None = None
         self.p: FloatArray = np.zeros((2, 2))
+        # every reset, prediction (with its Φ and Q) and update, for an offline smoother
+        # (dffd.core.smoother); None: not recorded (the daemon)
+        self.trace = trace
 
     @property
     def z(self) -> float | None:
@@ -278,6 +296,8 @@ class DepthKF:
         """Initialise at ``z`` with uncertainty ``sigma_z`` and b = 0."""
         self.x = np.array([z, 0.0])
         self.p = np.diag([sigma_z**2, self.noise.sigma_b0**2])
+        if self.trace is not None:
+            self.trace.append(KFTraceEvent("reset", self.x, self.p))
 
     @staticmethod
     def transition(ratio: float, dt: float) -> FloatArray:
@@ -308,6 +328,10 @@ class DepthKF:
                 [p10 * ratio + p11 * g + qb * dt**2 / 2, p11 + qb * dt],
             ]
         )
+        if self.trace is not None:
+            q = np.array([[qz + qb * dt**3 / 3, qb * dt**2 / 2], [qb * dt**2 / 2, qb * dt]])
+            phi = np.array([[ratio, g], [0.0, 1.0]])
+            self.trace.append(KFTraceEvent("predict", self.x, self.p, phi=phi, q=q))
 
     def update(self, y: float, sigma_y: float) -> float:
         """Correct with a depth measurement ``y`` of standard deviation ``sigma_y``; innovation."""
@@ -331,6 +355,8 @@ class DepthKF:
                 [a10 * (1.0 - k0) + k1 * k0 * r, a11 - a10 * k1 + k1 * k1 * r],
             ]
         )
+        if self.trace is not None:
+            self.trace.append(KFTraceEvent("update", self.x, self.p, y=y, r=r))
         return innov
 
 

@@ -41,7 +41,16 @@ import numpy as np
 import numpy.typing as npt
 
 from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig, find_target
-from dffd.core.filters import CF1, CF2, DepthKF, Differentiator, KFNoise, LPVGains, LPVObserver
+from dffd.core.filters import (
+    CF1,
+    CF2,
+    DepthKF,
+    Differentiator,
+    KFNoise,
+    KFTraceEvent,
+    LPVGains,
+    LPVObserver,
+)
 from dffd.core.filters import cf2_gains as _cf2_gains
 from dffd.core.focus import FitConfig, PlanConfig, fit_burst, frame_cost
 from dffd.core.focus import plan_burst as _plan_burst
@@ -257,6 +266,7 @@ class Pipeline:
         self.burst_rejections: Counter[str] = Counter()
         # Bursts fitted with cost (2) because a frame had no cost of the configured measure.
         self.measure_fallbacks = 0
+        self.kf_trace: list[KFTraceEvent] | None = None  # see record_kf
         self._reset_estimators()
 
     # -- public API -------------------------------------------------------------------------
@@ -292,6 +302,12 @@ class Pipeline:
         self._state = "idle"
         self._last_box = None
         self._reset_estimators()
+
+    def record_kf(self, trace: list[KFTraceEvent]) -> None:
+        """Append every Kalman-filter step to ``trace`` from now on (an offline smoother's input,
+        dffd.core.smoother); the daemon does not record."""
+        self.kf_trace = trace
+        self._kf.trace = trace
 
     def set_known_size(self, meters: float | None) -> None:
         """Set (enables CF1) or clear the target's known size."""
@@ -654,7 +670,7 @@ class Pipeline:
         self._cf1 = CF1(cfg.cf1_k)
         self._cf2 = CF2(*self.cf2_gains)
         self._lpv = LPVObserver(self.lpv_gains)
-        self._kf = DepthKF(cfg.kf_noise)
+        self._kf = DepthKF(cfg.kf_noise, self.kf_trace)
         self._diff = Differentiator(cfg.differentiator_omega)
         self._unc = Uncertainty(
             cfg.kf_noise,
