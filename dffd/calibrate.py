@@ -282,11 +282,15 @@ def vertex(counts: npt.NDArray[np.float64], costs: npt.NDArray[np.float64]) -> f
 class SimRig:
     """The simulated camera in lock-step virtual time, a static target at a chosen depth."""
 
-    def __init__(self, sim_config: Path) -> None:
+    def __init__(self, sim_config: Path | Any) -> None:
+        """``sim_config``: a simulated-camera config file, or a loaded ``SimCameraConfig`` (the
+        bench calibrates its sessions' own camera)."""
         from drivers.sim.config import load_sim_camera_config
         from drivers.sim.optics import Optics
 
-        self.config = load_sim_camera_config(sim_config)
+        self.config = (
+            load_sim_camera_config(sim_config) if isinstance(sim_config, Path) else sim_config
+        )
         optics = Optics.from_config(self.config)
         lens = Lens.from_meta(_lens_meta(optics, self.config.zoom_counts))
         self.focal_length_mm = lens.focal_length_mm

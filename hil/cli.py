@@ -79,6 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="experiment override: scheduler.KEY=V, estimator.KEY=V (dffd dataclass fields) or "
         "camera.SECTION.KEY=V (simulator config); recorded in report.json",
     )
+    run.add_argument(
+        "--truth-lens",
+        action="store_true",
+        help="fast mode: tell the estimator the simulator's own lens table instead of one "
+        "fitted by `dffd calibrate --sim` on the session's camera (the default, as the lab does)",
+    )
     run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     run.add_argument("--no-baselines", action="store_true", help="skip the ArUco/full-sweep passes")
     run.add_argument("--config", type=Path, default=None, help="daemon config (real-time modes)")
@@ -194,5 +200,6 @@ def _run(args: argparse.Namespace) -> int:
         camera=args.camera,
         video=args.video,
         truth_csv=args.truth,
+        calibrate=not args.truth_lens,
     )
     return run_scenario(scenario, options)

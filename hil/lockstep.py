@@ -31,6 +31,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -95,14 +96,17 @@ def run_session(
     progress: Progress | None = None,
     recorder: FrameSink | None = None,
     on_step: Callable[[StepResult], object] | None = None,
+    lens_path: Path | None = None,
 ) -> RunResult:
     """Run one case of ``scenario`` with ``seed`` in virtual time and return what was measured.
 
-    ``on_step`` sees every core step (output and scheduler feedback) of the dffd policy.
+    ``on_step`` sees every core step (output and scheduler feedback) of the dffd policy;
+    ``lens_path``: the lens table the estimator is told (default: the scenario's, see
+    :func:`hil.simbuild.build_session`).
     """
     duration = scenario.duration_s if duration_s is None else duration_s
     shape = "aruco" if policy == "aruco" else scenario.target.shape
-    session = build_session(scenario, trajectory, seed, target_shape=shape)
+    session = build_session(scenario, trajectory, seed, target_shape=shape, lens_path=lens_path)
     runner = _Runner(scenario, case, seed, session, policy, duration, progress, recorder)
     runner.on_step = on_step
     return runner.run()

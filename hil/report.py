@@ -464,6 +464,18 @@ def format_table(report: dict[str, Any]) -> str:
                 _mm(sd["measured_ss_std_m"]),
             )
         )
+    lines.extend(
+        "lens table fitted by dffd calibrate --sim ({} optics, seed {}): depth error rms {} "
+        "mm, max {} mm over {}-{} m; v error rms {} µm".format(
+            c["optics"],
+            c["seed"],
+            _mm(c["depth_err_rms_m"]),
+            _mm(c["depth_err_max_abs_m"]),
+            *c["score_depths_m"],
+            _num(c["v_err_rms_um"], "{:.2f}"),
+        )
+        for c in (report.get("calibration") or {}).get("tables", [])
+    )
     cpu = report["cpu"]
     lines.append(
         "core CPU {} ms/frame (p95 {}); {:.0f} s of scenario in {:.1f} s wall".format(

@@ -15,6 +15,7 @@ from dffd.core.types import FrameTag
 from dffd.recording import RecordingWriter
 from drivers.frames import Frame
 from drivers.sim.source import FrameTruth
+from hil.calibration import Calibration, calibrated_lens
 from hil.report import build_report, format_table, write_plots, write_report
 from hil.results import RunResult
 from hil.scenario import Scenario
@@ -47,6 +48,9 @@ class RunOptions:
     camera: str | None = None
     video: str | None = None
     truth_csv: Path | None = None
+    # the estimator's lens table: fitted by `dffd calibrate --sim` on the session's camera
+    # (as the lab does, hil/calibration.py), or the simulator's ground truth / packaged table
+    calibrate: bool = True
 
 
 def run_scenario(scenario: Scenario, options: RunOptions) -> int:
@@ -62,6 +66,14 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> int:
         return EXIT_FAILURE
     thresholds = scenario.thresholds.model_dump()
     report = build_report(results, scenario.name, thresholds)
+    calib = [c for r in results if (c := r.extra.get("calibration")) is not None]
+    if calib:
+        seen = {(c["optics"], c["seed"]): c for c in calib}
+        report["calibration"] = {
+            "method": "dffd calibrate --sim on the session's camera (hil/calibration.py)",
+            "tables": list(seen.values()),
+            "depth_err_rms_m_max": max(c["depth_err_rms_m"] for c in seen.values()),
+        }
     report["overrides"] = {"scheduler": scenario.scheduler, "estimator": scenario.estimator}
     if options.camera is None:  # the simulator renders (not the lab's camera)
         from hil.simbuild import optics_model
@@ -91,9 +103,15 @@ def run_fast(scenario: Scenario, options: RunOptions) -> list[RunResult]:
     if options.record:
         _announce_recording(scenario, options.out_dir, len(sessions))
     results: list[RunResult] = []
+    calibrations: dict[int, Calibration] = {}
+    if options.calibrate and options.camera is None:
+        for seed in scenario.seeds:
+            calibrations[seed] = calibrated_lens(scenario, seed, options.out_dir / "calibration")
     with _progress(options.progress, total, scenario.name) as advance:
         for case, traj, seed in sessions:
-            with _recording(options, scenario, case, seed) as sink:
+            calib = calibrations.get(seed)
+            lens_path = None if calib is None else calib.lens_path
+            with _recording(options, scenario, case, seed, lens_path) as sink:
                 res = run_session(
                     scenario,
                     case,
@@ -101,7 +119,12 @@ def run_fast(scenario: Scenario, options: RunOptions) -> list[RunResult]:
                     seed,
                     progress=advance(case, scenario.duration_s),
                     recorder=sink,
+                    lens_path=lens_path,
                 )
+            if calib is not None:
+                res.extra["calibration"] = {
+                    k: v for k, v in calib.report.items() if k != "per_depth"
+                }
             for policy in extra_passes:
                 extra = run_session(
                     scenario,
@@ -111,6 +134,7 @@ def run_fast(scenario: Scenario, options: RunOptions) -> list[RunResult]:
                     policy="sweep" if policy == "sweep" else "aruco",
                     duration_s=pass_s,
                     progress=advance(f"{case} {policy}", pass_s),
+                    lens_path=lens_path,
                 )
                 _merge_pass(res, extra, policy)
             results.append(res)
@@ -233,7 +257,7 @@ def _recorded(path: Path) -> str:
 
 @contextmanager
 def _recording(
-    options: RunOptions, scenario: Scenario, case: str, seed: int
+    options: RunOptions, scenario: Scenario, case: str, seed: int, lens_path: Path | None
 ) -> Iterator[RecordingSink | None]:
     if not options.record:
         yield None
@@ -241,7 +265,7 @@ def _recording(
     from hil.simbuild import build_session
 
     traj = dict(scenario.expand())[case]
-    session = build_session(scenario, traj, seed)
+    session = build_session(scenario, traj, seed, lens_path=lens_path)
     lens = Lens.from_toml(session.lens_path)
     name = case if len(scenario.seeds) == 1 else f"{case}-s{seed}"
     path = options.out_dir / "recording" / name

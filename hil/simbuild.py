@@ -157,22 +157,26 @@ def build_session(
     seed: int,
     *,
     target_shape: str | None = None,
+    lens_path: Path | None = None,
 ) -> SimSession:
-    """A ready simulated camera for one session, its virtual clock at 0."""
+    """A ready simulated camera for one session, its virtual clock at 0; the estimator is told
+    ``lens_path`` when given (a calibrated table, hil/calibration.py)."""
     config, notes = sim_camera_config(scenario, trajectory, seed, target_shape)
     # The bench starts the camera powered up in manual focus (the daemon's initialisation is
     # not what it measures).
     device = DeviceConfig(pace=True, autofocus_at_power_up=False, network_change_at_power_up=False)
     rig = build_sim_camera(config, device=device, virtual_start_s=0.0, t0=T_FIRST_FRAME_S)
+    if lens_path is not None:
+        return SimSession(rig, lens_path, notes)
     if config.optics.model != "reference":
         # The packaged tables describe the reference lens: another optics model's estimator is
         # told that model's ground truth (a table `dffd calibrate --sim` fits is issue 11.7).
-        lens_path = _temporary_lens_table(config)
+        lens_path = truth_lens_table(config)
         notes.append(f"optics {config.optics.model}: the simulator's ground-truth lens table used")
         return SimSession(rig, lens_path, notes)
     lens_path = lens_file(scenario.camera.lens)
     if not lens_path.exists():
-        lens_path = _temporary_lens_table(config)
+        lens_path = truth_lens_table(config)
         notes.append(f"{scenario.camera.lens} missing: the simulator's ground-truth table was used")
     return SimSession(rig, lens_path, notes)
 
@@ -202,7 +206,8 @@ def _resolve(path: str) -> Path:
 _LENS_CACHE: dict[int, Path] = {}
 
 
-def _temporary_lens_table(config: SimCameraConfig) -> Path:
+def truth_lens_table(config: SimCameraConfig) -> Path:
+    """The simulator's ground-truth lens table of ``config`` (a temporary file, memoised)."""
     key = hash((config.lens.model_dump_json(), config.optics.model_dump_json(), config.zoom_counts))
     if key not in _LENS_CACHE:
         handle = tempfile.NamedTemporaryFile(  # noqa: SIM115 - kept for the process lifetime

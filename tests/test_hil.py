@@ -252,7 +252,7 @@ def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> N
     assert 'name = "sim-aberrated"' in session.lens_path.read_text(encoding="utf-8")
     out = tmp_path / "out"
     argv = ["run", str(scenario), "--fast", "--out", str(out), "--no-progress", "--no-plots"]
-    argv += ["--no-baselines", "--optics", "aberrated", "--seeds", "5,6"]
+    argv += ["--no-baselines", "--optics", "aberrated", "--seeds", "5,6", "--truth-lens"]
     assert hil_main(argv) == 0
     report = load_report(out)
     assert report["optics"] == "aberrated"
@@ -292,3 +292,25 @@ def test_a_recording_run_says_what_it_will_write_and_what_it_wrote(
     (recording,) = (out / "recording").iterdir()
     frames = len(list(recording.glob("frames/*.png")))
     assert f"recording: {recording} ({frames} frames, " in printed  # and what it wrote
+
+
+def test_bench_scores_on_a_table_dffd_calibrate_fitted(short_run: tuple[Path, dict]) -> None:
+    """The lens table is fitted by dffd calibrate --sim on the session's camera (cached in the
+    run directory) and its error against the simulator's true focus curve is reported."""
+    from dffd.core.lens import Lens
+    from hil.calibration import calibration_error
+
+    out, report = short_run
+    calib = report["calibration"]
+    (table,) = calib["tables"]
+    assert table["optics"] == "reference"
+    assert table["seed"] == 5
+    assert Path(table["table"]).parent == out / "calibration"
+    assert 0 < table["depth_err_rms_m"] < 0.5  # a fitted table: not exact, not absurd
+    assert calib["depth_err_rms_m_max"] == table["depth_err_rms_m"]
+    lens = Lens.from_toml(Path(table["table"]))
+    assert lens.name == "calibrated-reference-s5"
+    # the recording carries the table the estimator was told
+    meta = json.loads((out / "recording" / "short-static" / "meta.json").read_text("utf-8"))
+    assert meta["lens"]["name"] == lens.name
+    assert calibration_error(lens, lens)["depth_err_rms_m"] == pytest.approx(0.0, abs=1e-9)
