@@ -73,7 +73,9 @@ from hil.track3d import Track3DScore, truth_3d
 
 logger = logging.getLogger(__name__)
 
-Policy = Literal["dffd", "sweep", "aruco"]
+Policy = Literal["dffd", "sweep", "coarse_fine", "aruco"]
+# The focus-sweep baselines: the classic full sweep and Krotkov's coarse-to-fine search.
+SWEEPS = ("sweep", "coarse_fine")
 Progress = Callable[[float], None]  # fraction of the session's scenario time done
 
 # Ground truth per frame kept for scoring measurements of past bursts.
@@ -219,7 +221,13 @@ class _Runner:
                 focal_length_px=self.lens.focal_length_mm / self.lens.pixel_pitch_mm,
                 frame_size=session.frame_size,
             )
-        self._sweep = _SweepState(self.lens, scenario.baselines.full_sweep_settings)
+        b = scenario.baselines
+        self._sweep: _SweepState = (
+            _CoarseFineState(self.lens, b.coarse_settings, b.fine_settings)
+            if policy == "coarse_fine"
+            else _SweepState(self.lens, b.full_sweep_settings)
+        )
+        self._sweep_baseline = "coarse_fine" if policy == "coarse_fine" else "full_sweep"
         self._sweep.exposure_s = session.exposure_s
         self.result.notes.extend(session.notes)
 
@@ -254,7 +262,7 @@ class _Runner:
         return self.result
 
     def _wakeup(self) -> float | None:
-        if self.policy == "sweep":
+        if self.policy in SWEEPS:
             times = [self.scheduler.next_wakeup(), self._sweep.wakeup]
             valid = [t for t in times if t is not None]
             return min(valid) if valid else None
@@ -262,12 +270,12 @@ class _Runner:
 
     def _act(self, now: float) -> None:
         for action in self.scheduler.next_actions(now):
-            if self.policy == "sweep" and isinstance(action, FocusMove | FocusInquiry):
+            if self.policy in SWEEPS and isinstance(action, FocusMove | FocusInquiry):
                 self._swallow_focus_action(action, now)
                 continue
             for outcome in self.link.send(action, now):
                 self._dispatch(outcome)
-        if self.policy == "sweep":
+        if self.policy in SWEEPS:
             move = self._sweep.next_move(now)
             if move is not None:
                 for outcome in self.link.send(move, now):
@@ -286,7 +294,7 @@ class _Runner:
 
     def _dispatch(self, outcome: _Outcome) -> None:
         action = outcome.action
-        if self.policy == "sweep" and isinstance(action, FocusMove):
+        if self.policy in SWEEPS and isinstance(action, FocusMove):
             # The sweep's own focus moves (the scheduler's were swallowed, see _act).
             if outcome.ok:
                 self._sweep.on_done(action.move_id, outcome.t)
@@ -306,7 +314,7 @@ class _Runner:
         self._remember_truth(index, truth_z)
         res = self.result
         res.frames += 1
-        if self.policy == "sweep":
+        if self.policy in SWEEPS:
             tag = self._sweep.tag(t_mid, tag)
             res.frames_by_role[tag.role] = res.frames_by_role.get(tag.role, 0) + 1
             self._sweep_frame(frame, tag, truth_z)
@@ -410,13 +418,13 @@ class _Runner:
         if done is not None:
             t_peak, z, tz = done
             if z is not None:
-                self.result.baseline("full_sweep").add(t_peak, z, tz)
+                self.result.baseline(self._sweep_baseline).add(t_peak, z, tz)
 
     def _finish(self) -> None:
         res = self.result
-        if self.policy == "sweep":
+        if self.policy in SWEEPS:
             res.full_sweep_depth_hz = self._sweep.completed / res.duration_s
-            res.extra["sweep_settings"] = self._sweep.n
+            res.extra["sweep_settings"] = self._sweep.frames_per_depth
             return
         counts = res.extra.get("burst_counts", [])
         halves = [0.5 * (max(c) - min(c)) for c in counts if len(c) >= 3]
@@ -535,6 +543,11 @@ class _SweepState:
         self.exposure_s = 0.0
         self.current: int | None = None
 
+    @property
+    def frames_per_depth(self) -> int:
+        """Clean frames one depth costs."""
+        return self.n
+
     def order(self) -> list[int]:
         return self.settings if self.forward else self.settings[::-1]
 
@@ -603,6 +616,59 @@ class _SweepState:
         if blob is not None:
             self.half_px = int(SWEEP_WINDOW_RADII * blob[2] + SWEEP_WINDOW_MARGIN_PX)
         return peak[2], z, peak[3]
+
+
+class _CoarseFineState(_SweepState):
+    """Krotkov-style coarse-to-fine search with the full sweep's sharpness measure: a coarse
+    pass over the whole range, then a fine pass over ± one coarse step around the coarse peak;
+    the depth comes from the fine pass (parabola through ln sharpness, as the full sweep)."""
+
+    def __init__(self, lens: Lens, coarse: int, fine: int) -> None:
+        super().__init__(lens, coarse)
+        self.coarse = list(self.settings)
+        self.fine_n = fine
+        self.stage = "coarse"
+
+    @property
+    def frames_per_depth(self) -> int:
+        return len(self.coarse) + self.fine_n
+
+    def on_frame(
+        self,
+        frame: Frame,
+        tag: FrameTag,
+        blob: tuple[float, float, float] | None,
+        truth_z: float,
+    ) -> tuple[float, float | None, float] | None:
+        if self.stage == "fine":
+            done = super().on_frame(frame, tag, blob, truth_z)
+            if done is not None:  # back to a coarse pass (in the direction the fine one ended)
+                self.stage, self.settings, self.n = "coarse", self.coarse, len(self.coarse)
+            return done
+        if tag.role != "burst" or tag.focus_counts is None:
+            return None
+        centre = (frame.image.shape[1] / 2.0, frame.image.shape[0] / 2.0)
+        if blob is not None:
+            centre = (blob[0], blob[1])
+        self.samples.append(
+            (tag.focus_counts, tenengrad(frame.image, centre, self.half_px), frame.t, truth_z)
+        )
+        self.claim_after = None
+        self.wakeup = frame.t + self.exposure_s / 2.0 + self.margin_s
+        self.step += 1
+        if self.step < self.n:
+            return None
+        samples, self.samples = self.samples, []
+        peak = max(samples, key=lambda s: s[1])[0]
+        lo, hi = self.lens.counts_range
+        span = (hi - lo) / max(len(self.coarse) - 1, 1)
+        a, b = max(lo, peak - span), min(hi, peak + span)
+        self.settings = [round(c) for c in np.linspace(a, b, self.fine_n)]
+        self.n, self.step, self.stage = self.fine_n, 0, "fine"
+        self.forward = not self.forward  # back from the end the coarse pass reached
+        if blob is not None:
+            self.half_px = int(SWEEP_WINDOW_RADII * blob[2] + SWEEP_WINDOW_MARGIN_PX)
+        return None
 
 
 def _parabola(v: tuple[float, ...], g: tuple[float, ...]) -> tuple[float, float, float] | None:

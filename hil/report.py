@@ -27,7 +27,7 @@ from hil.track3d import pooled_block
 logger = logging.getLogger(__name__)
 
 REPORT_SCHEMA = 1
-BASELINE_KEYS = ("known_size", "aruco", "full_sweep")
+BASELINE_KEYS = ("known_size", "aruco", "full_sweep", "coarse_fine")
 # Parabola panels drawn from the sample bursts (spread over the run).
 SAMPLE_BURSTS = 6
 # Depth bins (m) of the diagnostics block.
@@ -105,6 +105,9 @@ def build_report(
         "depth_limit_hz": limit,
         "depth_rate_ratio": depth_hz / limit if limit else None,
         "full_sweep_depth_hz": sweep_hz,
+        "coarse_fine_depth_hz": _mean(
+            [r.extra.get("coarse_fine_pass", {}).get("depth_hz") for r in results]
+        ),
         "sweep_rate_ratio": depth_hz / sweep_hz if sweep_hz else None,
         "frame_hz": sum(r.frames for r in results) / duration if duration > 0 else 0.0,
         "frames_by_role": _sum_dicts([r.frames_by_role for r in results]),
@@ -403,12 +406,14 @@ def format_table(report: dict[str, Any]) -> str:
     rates = report["rates"]
     lines.append("")
     lines.append(
-        "depth rate {:.2f} Hz (limit {}, ratio {}); full sweep {} Hz (dffd/sweep {})".format(
+        "depth rate {:.2f} Hz (limit {}, ratio {}); full sweep {} Hz (dffd/sweep {}); "
+        "coarse-to-fine sweep {} Hz".format(
             rates["depth_hz"],
             _num(rates["depth_limit_hz"], "{:.2f}"),
             _num(rates["depth_rate_ratio"], "{:.2f}"),
             _num(rates["full_sweep_depth_hz"], "{:.3f}"),
             _num(rates["sweep_rate_ratio"], "{:.1f}×"),
+            _num(rates.get("coarse_fine_depth_hz"), "{:.3f}"),
         )
     )
     if (pt := report.get("pan_tilt")) is not None:

@@ -90,13 +90,15 @@ def run_scenario(scenario: Scenario, options: RunOptions) -> int:
 
 def run_fast(scenario: Scenario, options: RunOptions) -> list[RunResult]:
     """Lock-step sessions: dffd on every case × seed, plus the baseline passes."""
-    from hil.lockstep import run_session
+    from hil.lockstep import Policy, run_session
 
     sessions = [(case, traj, seed) for case, traj in scenario.expand() for seed in scenario.seeds]
     pass_s = min(scenario.baselines.max_pass_s, scenario.duration_s)
-    extra_passes = []
+    extra_passes: list[Policy] = []
     if options.baselines and scenario.baselines.full_sweep:
         extra_passes.append("sweep")
+    if options.baselines and scenario.baselines.coarse_fine:
+        extra_passes.append("coarse_fine")
     if options.baselines and scenario.baselines.aruco:
         extra_passes.append("aruco")
     total = len(sessions) * (scenario.duration_s + pass_s * len(extra_passes))
@@ -131,7 +133,7 @@ def run_fast(scenario: Scenario, options: RunOptions) -> list[RunResult]:
                     case,
                     traj,
                     seed,
-                    policy="sweep" if policy == "sweep" else "aruco",
+                    policy=policy,
                     duration_s=pass_s,
                     progress=advance(f"{case} {policy}", pass_s),
                     lens_path=lens_path,
@@ -174,6 +176,16 @@ def _merge_pass(res: RunResult, extra: RunResult, policy: str) -> None:
             "duration_s": extra.duration_s,
             "sweeps": len(extra.baselines.get("full_sweep", [])),
             "settings": extra.extra.get("sweep_settings"),
+        }
+    elif policy == "coarse_fine":
+        res.baselines["coarse_fine"] = extra.baselines.get(
+            "coarse_fine", extra.baseline("coarse_fine")
+        )
+        res.extra["coarse_fine_pass"] = {
+            "duration_s": extra.duration_s,
+            "depths": len(extra.baselines.get("coarse_fine", [])),
+            "depth_hz": extra.full_sweep_depth_hz,
+            "frames_per_depth": extra.extra.get("sweep_settings"),
         }
     else:
         res.baselines["aruco"] = extra.baselines.get("aruco", extra.baseline("aruco"))

@@ -95,6 +95,11 @@ class BaselineSpec(_Model):
     full_sweep: bool = True
     # Classic depth from focus: settings spread evenly over the focus range in each sweep.
     full_sweep_settings: int = Field(16, ge=5, le=64)
+    # Krotkov-style coarse-to-fine sweep (same sharpness measure as the full sweep): a coarse
+    # pass over the whole range, then a fine pass over ± one coarse step around its peak.
+    coarse_fine: bool = True
+    coarse_settings: int = Field(8, ge=4, le=64)
+    fine_settings: int = Field(7, ge=3, le=64)
     # The ArUco and full-sweep passes need their own frames; cap their length to keep runs short.
     max_pass_s: float = Field(60.0, gt=0.0)
 

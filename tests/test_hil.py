@@ -117,12 +117,16 @@ def test_short_fast_run_reports_sane_accuracy(short_run: tuple[Path, dict]) -> N
 
 def test_each_baseline_yields_numbers(short_run: tuple[Path, dict]) -> None:
     _, report = short_run
-    for key in ("known_size", "aruco", "full_sweep"):
+    for key in ("known_size", "aruco", "full_sweep", "coarse_fine"):
         block = report["baselines"][key]
         assert block is not None, key
         assert block["n"] >= 1, key
         assert math.isfinite(block["rms_m"]), key
         assert block["rms_m"] < 0.5, key  # each is a working depth estimate at 2 m
+    # Krotkov's coarse-to-fine search: finer than the full sweep at a comparable frame cost
+    assert report["rates"]["coarse_fine_depth_hz"] > 0
+    fine, full = report["baselines"]["coarse_fine"], report["baselines"]["full_sweep"]
+    assert fine["rms_m"] < full["rms_m"]
 
 
 def test_rates_latency_cpu_and_goals_present(short_run: tuple[Path, dict]) -> None:
