@@ -731,7 +731,7 @@ class Pipeline:
     ) -> Estimate:
         cfg = self.config
         depth: dict[str, float | None] = {name: self._depth(name) for name in ESTIMATORS}
-        sigma_by = {n: self._unc.sigma(n) if v is not None else None for n, v in depth.items()}
+        sigma_by = self._unc.sigmas(depth)
         z = depth[cfg.best]
         h, w = frame.image.shape[:2]
         dt = 0.0 if self._prev_pos_t is None else frame.t - self._prev_pos_t

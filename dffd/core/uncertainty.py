@@ -25,7 +25,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from dffd.core.filters import DepthKF, KFNoise, LPVGains, exp_input2
+from dffd.core.filters import KFNoise, LPVGains, Mat2, Vec2, exp_input2_floats
 from dffd.core.noise import (
     InnovationScale,
     NoiseAdaptConfig,
@@ -50,16 +50,32 @@ class ErrorCovariance:
         """Variance of the depth error."""
         return max(float(self.p[0, 0]), 0.0)
 
-    def propagate(self, phi: FloatArray, g: FloatArray, ratio: float, q: FloatArray) -> None:
-        """One frame: ``e ← phi e − g ε + w`` (``cov w = q``), ``ε ← ratio ε``."""
-        n = self.n
-        t = np.zeros((n + 1, n + 1))
-        t[:n, :n] = phi
-        t[:n, n] = -g
-        t[n, n] = ratio
-        p = t @ self.p @ t.T
-        p[:n, :n] += q
-        self.p = p
+    def propagate(self, phi: Mat2, g: Vec2, ratio: float, q: Mat2) -> None:
+        """One frame: ``e ← phi e − g ε + w`` (``cov w = q``), ``ε ← ratio ε``; for ``n = 1``
+        only the first entries of ``phi``, ``g`` and ``q`` are used.
+
+        Written out on floats: it runs for four estimators on every frame, and NumPy's
+        per-call overhead on 3×3 arrays is most of the cost (measured ~4× slower).
+        """
+        rows = self.p.tolist()
+        if self.n == 1:
+            (a, c), (_, d) = rows
+            f, g0 = phi[0], g[0]
+            u = f * c - g0 * d
+            e = f * f * a - 2.0 * f * c * g0 + d * g0 * g0 + q[0]
+            self.p = np.array([[e, ratio * u], [ratio * u, ratio * ratio * d]])
+            return
+        (a00, a01, c0), (_, a11, c1), (_, _, d) = rows
+        p00, p01, p10, p11 = phi
+        g0, g1 = g
+        b00, b01 = p00 * a00 + p01 * a01, p00 * a01 + p01 * a11
+        b10, b11 = p10 * a00 + p11 * a01, p10 * a01 + p11 * a11
+        h0, h1 = p00 * c0 + p01 * c1, p10 * c0 + p11 * c1  # Φ c
+        e00 = b00 * p00 + b01 * p01 - 2.0 * h0 * g0 + d * g0 * g0 + q[0]
+        e01 = b00 * p10 + b01 * p11 - h0 * g1 - g0 * h1 + d * g0 * g1 + q[1]
+        e11 = b10 * p10 + b11 * p11 - 2.0 * h1 * g1 + d * g1 * g1 + q[3]
+        u0, u1 = ratio * (h0 - g0 * d), ratio * (h1 - g1 * d)
+        self.p = np.array([[e00, e01, u0], [e01, e11, u1], [u0, u1, ratio * ratio * d]])
 
     def replace_measurement(self, var_new: float, corr: float) -> None:
         """The held measurement becomes a new one of variance ``var_new``, correlated ``corr``
@@ -157,6 +173,23 @@ class Uncertainty:
             return None
         return math.sqrt(err.var_z * self.consistency.scale) * self.factor
 
+    def sigmas(self, depth: dict[str, float | None]) -> dict[str, float | None]:
+        """Published σ of every estimator with a value in ``depth`` (None for the others)."""
+        if not self.started:
+            return dict.fromkeys(depth)
+        f = self.factor
+        kappa = math.sqrt(self.consistency.scale)
+        out: dict[str, float | None] = {}
+        for name, value in depth.items():
+            err = self.errors.get(name)
+            if value is None:
+                out[name] = None
+            elif name == "measured":
+                out[name] = None if self.measured_sigma is None else self.measured_sigma * f
+            else:
+                out[name] = None if err is None else math.sqrt(err.var_z) * kappa * f
+        return out
+
     @property
     def factor(self) -> float:
         """Student-t inflation for the degrees of freedom of the noise estimates."""
@@ -179,28 +212,27 @@ class Uncertainty:
         n = self.noise
         qz = (n.sigma_rho * z) ** 2 * dt
         qb = n.sigma_b**2 * dt
-        q2 = np.diag([qz, qb])
+        q2 = (qz, 0.0, 0.0, qb)
         lam = -rho
         # CF1: ẑ' = −k ẑ + k y + ψ
         k = self._cf1_k
         e = math.exp(-k * dt)
         near = abs(lam + k) * dt < 1e-9
         g1 = k * dt * e if near else k * (math.exp(lam * dt) - e) / (lam + k)
-        self.errors["cf1"].propagate(np.array([[e]]), np.array([g1]), ratio, np.array([[qz]]))
+        self.errors["cf1"].propagate((e, 0.0, 0.0, 0.0), (g1, 0.0), ratio, q2)
         k1, k2 = self._cf2
-        phi, g = exp_input2(np.array([[-k1, 1.0], [-k2, 0.0]]), np.array([k1, k2]), lam, dt)
+        phi, g = exp_input2_floats((-k1, 1.0, -k2, 0.0), (k1, k2), lam, dt)
         self.errors["cf2"].propagate(phi, g, ratio, q2)
         gl = self._lpv
         kl = gl.k1_0 - min(max(rho, gl.rho_min), gl.rho_max)
-        m = np.array([[-rho - kl, 1.0], [-gl.k2, 0.0]])
-        phi, g = exp_input2(m, np.array([kl, gl.k2]), lam, dt)
+        phi, g = exp_input2_floats((-rho - kl, 1.0, -gl.k2, 0.0), (kl, gl.k2), lam, dt)
         self.errors["lpv"].propagate(phi, g, ratio, q2)
-        # the KF's own transition (its b enters through g_k), no held measurement in between
-        phi_kf = DepthKF.transition(ratio, dt)
-        q_kf = np.array(
-            [[qz + qb * dt * dt / 3.0, qb * dt / 2.0], [qb * dt / 2.0, qb]]
-        )  # as DepthKF.predict: the b random walk integrated over the step
-        self.errors["kf"].propagate(phi_kf, np.zeros(2), ratio, q_kf)
+        # the KF's own transition (its b enters through g_k), no held measurement in between;
+        # Q as DepthKF.predict: the b random walk integrated over the step
+        lr = -math.log(max(ratio, 1e-6))
+        gk = dt if abs(lr) < 1e-9 else dt * (1.0 - ratio) / lr
+        q_kf = (qz + qb * dt * dt / 3.0, qb * dt / 2.0, qb * dt / 2.0, qb)
+        self.errors["kf"].propagate((ratio, gk, 0.0, 1.0), (0.0, 0.0), ratio, q_kf)
 
     def observe_size(
         self, log_size: float, rho: float, rel_sigma_fit: float, frames: tuple[int, ...]
