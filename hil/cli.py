@@ -80,10 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
         "camera.SECTION.KEY=V (simulator config); recorded in report.json",
     )
     run.add_argument(
-        "--truth-lens",
+        "--calibrate",
         action="store_true",
-        help="fast mode: tell the estimator the simulator's own lens table instead of one "
-        "fitted by `dffd calibrate --sim` on the session's camera (the default, as the lab does)",
+        help="fast mode: tell the estimator a lens table fitted by `dffd calibrate --sim` on the "
+        "session's camera (as the lab does) instead of the simulator's own table; report.json "
+        "gives its error (docs/estimation.md §10)",
     )
     run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     run.add_argument("--no-baselines", action="store_true", help="skip the ArUco/full-sweep passes")
@@ -200,6 +201,6 @@ def _run(args: argparse.Namespace) -> int:
         camera=args.camera,
         video=args.video,
         truth_csv=args.truth,
-        calibrate=not args.truth_lens,
+        calibrate=args.calibrate,
     )
     return run_scenario(scenario, options)

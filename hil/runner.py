@@ -48,9 +48,11 @@ class RunOptions:
     camera: str | None = None
     video: str | None = None
     truth_csv: Path | None = None
-    # the estimator's lens table: fitted by `dffd calibrate --sim` on the session's camera
-    # (as the lab does, hil/calibration.py), or the simulator's ground truth / packaged table
-    calibrate: bool = True
+    # the estimator's lens table: fitted by `dffd calibrate --sim` on the session's camera (as
+    # the lab does, hil/calibration.py), or (default) the simulator's ground truth / packaged
+    # table. Opt-in while the calibration sweep's own vertex noise (~1 µm of v: 0.1-0.2 m at
+    # 10 m) dominates every scenario's error (docs/estimation.md §10).
+    calibrate: bool = False
 
 
 def run_scenario(scenario: Scenario, options: RunOptions) -> int:

@@ -55,9 +55,10 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     out = base / "out"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        code = hil_main(
-            ["run", str(scenario), "--fast", "--out", str(out), "--no-progress", "--record"]
-        )
+        # --calibrate: the estimator is told the table dffd calibrate --sim fits (at 2 m its
+        # error is a few mm, docs/estimation.md §10)
+        argv = ["run", str(scenario), "--fast", "--out", str(out), "--no-progress"]
+        code = hil_main([*argv, "--record", "--calibrate"])
     (base / "stdout.txt").write_text(printed.getvalue(), encoding="utf-8")
     assert code == 0
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
@@ -256,7 +257,7 @@ def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> N
     assert 'name = "sim-aberrated"' in session.lens_path.read_text(encoding="utf-8")
     out = tmp_path / "out"
     argv = ["run", str(scenario), "--fast", "--out", str(out), "--no-progress", "--no-plots"]
-    argv += ["--no-baselines", "--optics", "aberrated", "--seeds", "5,6", "--truth-lens"]
+    argv += ["--no-baselines", "--optics", "aberrated", "--seeds", "5,6"]
     assert hil_main(argv) == 0
     report = load_report(out)
     assert report["optics"] == "aberrated"
