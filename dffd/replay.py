@@ -162,18 +162,15 @@ def replay(
 
 def add_smoothed(lines: Sequence[dict[str, Any]], smoothed: dict[int, Smoothed]) -> None:
     """Put the RTS-smoothed depth into every line as estimator ``smoothed`` (``depth_m`` and
-    ``sigma_m``). Its σ is the smoother's model σ times the inflation the causal KF's published
-    σ has over its own model σ at that frame (adapted noise, correlated measurements,
-    Student-t), so both are honest in the same sense."""
+    ``sigma_m``). Its σ is the causal KF's published σ at that frame, an upper bound: the
+    smoother's own model σ assumes white measurement noise, and consecutive bursts share frames
+    (scaled by the model's ratio P_smoothed/P_filtered it covered 43 % of the errors at 2σ on a
+    recorded approach run, NEES 5.3; bounded by the filter's, 100 %, NEES 1.2)."""
     for line in lines:
         sm = smoothed.get(line["frame"])
         depth, sigma = line["depth_m"], line["sigma_m"]
         depth[SMOOTHED] = None if sm is None else sm.z
-        sigma[SMOOTHED] = None
-        kf_sigma = sigma.get("kf")
-        p_filt = None if sm is None else float(sm.p_filtered[0, 0])
-        if sm is not None and kf_sigma is not None and p_filt is not None and p_filt > 0:
-            sigma[SMOOTHED] = sm.sigma_z * kf_sigma / math.sqrt(p_filt)
+        sigma[SMOOTHED] = None if sm is None else sigma.get("kf")
 
 
 def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str, Any]:
