@@ -179,6 +179,7 @@ _NO_DEPTH: dict[str, Any] = {
     "depth_m": models.DepthByEstimator(measured=None, cf1=None, cf2=None, lpv=None, kf=None),
     "z_m": None,
     "sigma_m": None,
+    "sigmas_m": None,
     "beta_m_s": None,
     "size_m": None,
     "position_m": None,
