@@ -4,13 +4,16 @@
 from __future__ import annotations
 
 import argparse
+import json
 import re
 from pathlib import Path
 from typing import get_args
 
+import jsonschema
+
 from dffd.cli import SUBCOMMANDS, build_parser
 from dffd.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
-from dffd.mqtt import models
+from dffd.mqtt import models, schemas
 from dffd.mqtt.topics import TOPIC_POLICY
 
 README = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
@@ -51,6 +54,29 @@ def test_every_topic_has_an_example_payload() -> None:
     text = section("Example payloads")
     for leaf, _qos, _retain in TOPIC_POLICY.values():
         assert f"dffd/sim/{leaf} " in text, f"no example payload of …/{leaf}"
+
+
+def test_the_example_payloads_are_complete_and_valid() -> None:
+    # Each example validates against the shipped schema of its topic and carries every field of
+    # that schema (so a field added to a payload must be shown here too); commands are checked
+    # by the command parser.
+    kinds = {leaf: kind for kind, (leaf, _qos, _retain) in TOPIC_POLICY.items()}
+    seen = set()
+    for line in section("Example payloads").splitlines():
+        if not line.startswith("dffd/sim/"):
+            continue
+        topic, payload = line.split(" ", 1)
+        leaf = topic.removeprefix("dffd/sim/")
+        doc = json.loads(payload)
+        seen.add(leaf)
+        if kinds[leaf] == "cmd":
+            if doc["cmd"] in models.COMMAND_NAMES:
+                models.parse_command(payload)
+            continue
+        schema = schemas.load(kinds[leaf])
+        jsonschema.validate(doc, schema)
+        assert set(schema["properties"]) <= set(doc), (leaf, set(schema["properties"]) - set(doc))
+    assert seen == set(kinds)
 
 
 def test_every_command_is_documented_with_its_arguments() -> None:
