@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from dffd.core.tracking3d import TrackerKind
     from drivers.frames import FrameSource
     from drivers.sim.config import SimCameraConfig
+    from drivers.stream import StreamFrameSource
 
 __all__ = [
     "WiringError",
@@ -33,6 +34,7 @@ __all__ = [
     "pipeline_config",
     "scheduler_config",
     "sim_camera_config",
+    "stream_source",
 ]
 
 
@@ -129,10 +131,13 @@ def pipeline_config(settings: DffdConfig) -> PipelineConfig:
 
 
 def capture_source(settings: DffdConfig) -> FrameSource:
-    """The OpenCV frame source of ``[capture]`` (a v4l2 device; drivers/capture.py)."""
+    """The OpenCV frame source of ``[capture]``: a v4l2 device or a network stream / file."""
     from drivers.capture import CaptureSettings, OpenCVFrameSource
 
     cap = settings.capture
+    if cap.source == "stream":
+        assert cap.url is not None  # validated: stream needs a url
+        return stream_source(settings, cap.url)
     assert cap.device is not None  # validated: v4l2 needs a device
     capture = CaptureSettings(
         device=cap.device,
@@ -143,9 +148,28 @@ def capture_source(settings: DffdConfig) -> FrameSource:
         buffer_size=1,  # one driver buffer: read() returns a fresh frame, not a stale one
         gray=True,  # the estimator's input
         queue_frames=CAPTURE_QUEUE_FRAMES,
-        latency_s=cap.latency_frames / cap.fps,
+        latency_s=cap.latency,
     )
     return OpenCVFrameSource(capture)
+
+
+def stream_source(settings: DffdConfig, url: str) -> StreamFrameSource:
+    """The FFmpeg stream source reading ``url`` with ``[capture]``'s rate, latency and timeouts."""
+    from drivers.stream import StreamFrameSource, StreamSettings
+
+    cap = settings.capture
+    return StreamFrameSource(
+        StreamSettings(
+            url=url,
+            fps=cap.fps,
+            gray=True,  # the estimator's input
+            queue_frames=CAPTURE_QUEUE_FRAMES,
+            latency_s=cap.latency,
+            timestamps=cap.timestamps,
+            open_timeout_s=cap.open_timeout_s,
+            read_timeout_s=cap.read_timeout_s,
+        )
+    )
 
 
 def sim_camera_config(settings: DffdConfig) -> SimCameraConfig:

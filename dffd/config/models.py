@@ -107,9 +107,34 @@ class CameraSection(_Section):
 class CaptureSection(_Section):
     """``[capture]``: the frame source."""
 
-    source: Literal["sim", "v4l2"] = "sim"
+    source: Literal["sim", "v4l2", "stream"] = Field(
+        default="sim",
+        description="sim = the simulated camera's renderer, v4l2 = a video device (device), "
+        "stream = network video or a video file through FFmpeg (url)",
+    )
     device: str | Annotated[int, Field(ge=0)] | None = Field(
         default=None, description="v4l2 device path (/dev/video0) or index"
+    )
+    url: str | None = Field(
+        default=None,
+        description="source = 'stream': rtsp://…, http://… (MJPEG) or the path of a video file",
+    )
+    latency_s: Annotated[float, Field(ge=0, le=5)] | None = Field(
+        default=None,
+        description="mid-exposure → delivery delay in seconds (measured by dffd calibrate "
+        "--latency); unset: latency_frames / fps",
+    )
+    timestamps: Literal["auto", "stream", "arrival"] = Field(
+        default="auto",
+        description="source = 'stream': frame times from the stream's timestamps (stream), from "
+        "arrival − latency (arrival), or the stream's while they run at the local clock's rate "
+        "(auto)",
+    )
+    open_timeout_s: Annotated[float, Field(gt=0, le=120)] = Field(
+        default=5.0, description="source = 'stream': give up opening after this long"
+    )
+    read_timeout_s: Annotated[float, Field(gt=0, le=120)] = Field(
+        default=2.0, description="source = 'stream': no frame for this long = stream lost"
     )
     width: Annotated[int, Field(ge=16, le=4096)] = 640
     height: Annotated[int, Field(ge=16, le=4096)] = 480
@@ -134,7 +159,18 @@ class CaptureSection(_Section):
             raise _field_error(
                 "device", "required when capture.source is 'v4l2' (e.g. /dev/video0 or 0)"
             )
+        if self.source == "stream" and not self.url:
+            raise _field_error(
+                "url",
+                "required when capture.source is 'stream' (e.g. rtsp://HOST:554/video1, "
+                "http://HOST/video.mjpg or a video file)",
+            )
         return self
+
+    @property
+    def latency(self) -> float:
+        """Mid-exposure → delivery delay in seconds: ``latency_s``, else in frames / fps."""
+        return self.latency_s if self.latency_s is not None else self.latency_frames / self.fps
 
 
 class LensSection(_Section):
@@ -420,6 +456,12 @@ class SimSection(_Section):
         description="how the daemon reaches the simulated camera: pty = the serial path over a "
         "pseudo-terminal, udp = VISCA over IP on a loopback port, tcp = raw VISCA over TCP",
     )
+    video: Literal["direct", "http"] = Field(
+        default="direct",
+        description="how the daemon gets the simulated camera's frames: direct = from its "
+        "renderer, http = as MJPEG over HTTP on a loopback port, read like a network camera's "
+        "stream (capture.latency_s applies)",
+    )
     publish_truth: bool = True
 
     @field_validator("scenario")
@@ -522,14 +564,15 @@ class DffdConfig(BaseSettings):
                     "message": "'cf1' needs target.known_size_m; set it or choose lpv, kf or cf2",
                 },
             )
-        if self.camera.driver == "sim" and self.capture.source == "v4l2":
+        if self.camera.driver == "sim" and self.capture.source in ("v4l2", "stream"):
             raise PydanticCustomError(
                 "dffd_path",
                 "{message}",
                 {
                     "path": "capture.source",
-                    "message": "'v4l2' cannot be used with the simulated camera "
-                    "(camera.driver = 'sim'); use source = 'sim' or driver = 'visca'",
+                    "message": f"{self.capture.source!r} cannot be used with the simulated "
+                    "camera (camera.driver = 'sim'); use source = 'sim' (sim.video = 'http' "
+                    "serves its frames as a network stream) or driver = 'visca'",
                 },
             )
         if self.camera.driver == "visca" and self.capture.source == "sim":
@@ -540,7 +583,7 @@ class DffdConfig(BaseSettings):
                     "path": "capture.source",
                     "message": "'sim' needs camera.driver = 'sim' (the simulator renders what its "
                     "own camera sees); with a real camera use source = 'v4l2' and set "
-                    "capture.device",
+                    "capture.device, or source = 'stream' and set capture.url",
                 },
             )
         return self

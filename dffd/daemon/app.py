@@ -74,7 +74,7 @@ from dffd.daemon.startup import (
     start_broker,
     start_camera_transport,
 )
-from dffd.daemon.status import StatusBoard, link_health
+from dffd.daemon.status import StatusBoard, link_health, video_health
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
@@ -293,7 +293,7 @@ class Daemon:
                 port, self._parts.sim_server, rig = await start_camera_transport(
                     cfg, stack, self.sim_faults
                 )
-                source, exposure_s, focus_speed, truth_for = open_source(cfg, rig)
+                source, exposure_s, focus_speed, truth_for = await open_source(cfg, rig, stack)
                 self._parts.source = source
                 self._parts.truth_for = truth_for
                 stack.push_async_callback(self._source_close)
@@ -592,6 +592,7 @@ class Daemon:
             link=link_health(self._parts.link, now),
             mqtt=publisher.health(),
             drops=drops,
+            video=video_health(self._parts.source),
         )
 
     def dashboard_snapshot(self) -> Snapshot | None:

@@ -26,8 +26,9 @@ from typing import Any
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.scheduler import Scheduler
-from dffd.wiring import WiringError, capture_source, sim_camera_config
-from drivers.frames import FrameSource
+from dffd.wiring import WiringError, capture_source, sim_camera_config, stream_source
+from drivers.frames import FrameSource, FrameSourceError
+from drivers.stream import StreamFrameSource
 from drivers.visca.camera import Camera, profile_for
 from drivers.visca.errors import ViscaError
 
@@ -89,25 +90,44 @@ async def start_camera_transport(
     return str(server.path), server, rig
 
 
-def open_source(
-    config: DffdConfig, sim_rig: Any
+async def open_source(
+    config: DffdConfig, sim_rig: Any, stack: contextlib.AsyncExitStack
 ) -> tuple[FrameSource, float | None, float, Callable[[int], Any] | None]:
-    """Return ``(source, exposure_s, focus_speed_counts_per_s, truth_for)`` for the config."""
+    """Return ``(source, exposure_s, focus_speed_counts_per_s, truth_for)`` for the config.
+
+    A network stream is opened here (its frame size is known only then); with ``sim.video =
+    "http"`` the simulator's frames are served as MJPEG on a loopback port and read back through
+    the same stream source as a network camera's.
+    """
     cfg = config
     if cfg.camera.driver == "sim" or cfg.capture.source == "sim":
         if cfg.camera.driver != "sim":
             raise DaemonError(
                 "capture.source = 'sim' needs camera.driver = 'sim' (the simulator renders "
-                "what its own camera sees); set capture.source = 'v4l2' for a real camera"
+                "what its own camera sees); set capture.source = 'v4l2' or 'stream' for a real "
+                "camera"
             )
         rig = sim_rig
-        return (
-            rig.source,
-            rig.config.capture.exposure_s,
-            rig.device_config.focus_speed_counts_s,
-            rig.source.truth_for,
-        )
+        exposure_s = rig.config.capture.exposure_s
+        focus_speed = rig.device_config.focus_speed_counts_s
+        if cfg.sim.video == "direct":
+            return rig.source, exposure_s, focus_speed, rig.source.truth_for
+        from drivers.sim.video_server import SimVideoServer
+
+        server = SimVideoServer(rig.source)
+        await stack.enter_async_context(server)
+        _LOGGER.info("simulated camera video on %s", server.url)
+        stream = stream_source(cfg, server.url)
+        await _start_stream(stream, stack)
+
+        def truth_for(index: int) -> Any:
+            # Frame indices of the stream are the reader's: match the truth by exposure time.
+            return rig.source.truth_near(stream.exposure_time(index))
+
+        return stream, exposure_s, focus_speed, truth_for
     source = capture_source(cfg)
+    if isinstance(source, StreamFrameSource):
+        await _start_stream(source, stack)
     profile = profile_for(cfg.camera.model)
     lo, hi = profile.focus_range
     return source, None, (hi - lo) / profile.focus_full_travel_s, None
@@ -152,6 +172,14 @@ async def initialize_camera(
         _LOGGER.info("camera re-initialised: focus re-learnt by inquiry, zoom restored")
 
     camera.link.add_reinit_callback(after_reinit)
+
+
+async def _start_stream(stream: StreamFrameSource, stack: contextlib.AsyncExitStack) -> None:
+    try:
+        await stream.start()
+    except FrameSourceError as exc:
+        raise DaemonError(f"capture: {exc}") from exc
+    stack.push_async_callback(stream.close)
 
 
 __all__ = [

@@ -10,6 +10,7 @@ from dffd import __version__
 from dffd.daemon.console import ConsoleSnapshot
 from dffd.daemon.payloads import nonneg
 from dffd.mqtt import models
+from drivers.stream import StreamFrameSource
 
 if TYPE_CHECKING:
     from dffd.core.pipeline import Measurement
@@ -29,6 +30,7 @@ __all__ = [
     "RateMeter",
     "StatusBoard",
     "link_health",
+    "video_health",
 ]
 
 
@@ -116,6 +118,7 @@ class StatusBoard:
         link: models.LinkHealth,
         mqtt: models.MqttHealth,
         drops: models.Drops,
+        video: models.VideoHealth | None = None,
     ) -> models.Status:
         """The retained ``…/status`` payload now."""
         return models.Status(
@@ -133,6 +136,7 @@ class StatusBoard:
                 depth_limit_hz=nonneg(depth_limit_hz),
             ),
             link=link,
+            video=video,
             mqtt=mqtt,
             drops=drops,
             version=__version__,
@@ -227,4 +231,19 @@ def link_health(link: ViscaLink | None, now: float) -> models.LinkHealth:
         timeouts=sum(h.timeouts.values()),
         last_reply_age_s=age,
         reconnects=h.reconnects,
+    )
+
+
+def video_health(source: object) -> models.VideoHealth | None:
+    """The ``video`` block of the status: a network stream's health (None for other sources)."""
+    if not isinstance(source, StreamFrameSource):
+        return None
+    h = source.health()
+    return models.VideoHealth(
+        url=h.url,
+        connected=h.connected,
+        frames=h.frames,
+        reconnects=h.reconnects,
+        stream_timestamps=h.stream_timestamps,
+        latency_s=h.latency_s,
     )

@@ -209,6 +209,22 @@ class LinkHealth(BaseModel):
     reconnects: NonNegInt = 0
 
 
+class VideoHealth(BaseModel):
+    """Health of a network video stream (``[capture] source = "stream"`` or ``sim.video``)."""
+
+    model_config = _STRICT
+
+    url: str = Field(description="the stream, without its password")
+    connected: bool
+    frames: NonNegInt = 0
+    reconnects: NonNegInt = Field(default=0, description="times the stream was lost and reopened")
+    stream_timestamps: bool = Field(
+        default=False,
+        description="frame times from the stream's timestamps (false: arrival − latency_s)",
+    )
+    latency_s: Annotated[float, Field(ge=0)] = 0.0
+
+
 class Drops(BaseModel):
     """Counters of data dropped by the bounded queues (all since start)."""
 
@@ -244,6 +260,9 @@ class Status(Payload):
     camera: str | None = None
     rates: Rates | None = None
     link: LinkHealth | None = None
+    video: VideoHealth | None = Field(
+        default=None, description="network video stream; null for a V4L2 device or the renderer"
+    )
     mqtt: MqttHealth | None = None
     drops: Drops | None = None
     last_estimate_age_s: Annotated[float, Field(ge=0)] | None = Field(

@@ -129,6 +129,10 @@ class _SnapshotCollector(Collector):
                 "Time since the last VISCA reply",
                 ln.last_reply_age_s,
             )
+        if st.video is not None:
+            vd = st.video
+            gauge("dffd_video_connected", "1 while the video stream is up", float(vd.connected))
+            counter("dffd_video_reconnects", "Video stream losses reopened", vd.reconnects)
         if st.mqtt is not None:
             mq = st.mqtt
             gauge("dffd_mqtt_connected", "1 while connected to the broker", float(mq.connected))

@@ -235,6 +235,15 @@ class SimFrameSource:
         with self._render_lock:
             return self._truth.get(index)
 
+    def truth_near(self, t: float | None) -> FrameTruth | None:
+        """Ground truth of the recent frame exposed nearest ``t`` (within half a period)."""
+        if t is None:
+            return None
+        truth = self.truth_for(round((t - self.t0) * self.fps))
+        if truth is None or abs(truth.t - t) > 0.5 / self.fps:
+            return None
+        return truth
+
     # -- internals ---------------------------------------------------------------------------
     async def _run(self, index: int) -> None:
         period = 1.0 / self.fps
