@@ -5,6 +5,9 @@ One procedure (:func:`calibrate`) runs against a :class:`Rig` — the simulated 
 VISCA camera on ``camera.port`` and the video device ``capture.device`` of ``--config``). Only the
 rig differs; the sweep, the fit and the file written are the same code.
 
+Capture latency in seconds for network video: ``dffd calibrate --latency --config FILE``
+(:mod:`dffd.latency`).
+
 Capture latency (first, at the first depth). The focus is settled, a few frames give the image
 noise floor, then a focus step is commanded and the frames delivered after the command that still
 show the old focus are counted: the frames in flight → ``[capture] latency_frames``.
@@ -131,6 +134,10 @@ class Rig(Protocol):
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate; print the table and the latency; return the exit code."""
+    if getattr(args, "latency", False):
+        from dffd.latency import run as run_latency
+
+        return run_latency(args)
     try:
         text = args.depths or ",".join(str(z) for z in DEFAULT_DEPTHS_M)
         depths = sorted({float(z) for z in text.split(",") if z.strip()})
@@ -401,10 +408,11 @@ class LabRig:
     ) -> None:
         from drivers.visca.camera import profile_for
 
-        if config.camera.driver != "visca" or config.capture.source != "v4l2":
+        if config.camera.driver != "visca" or config.capture.source not in ("v4l2", "stream"):
             raise CalibrationError(
                 "the lab procedure needs camera.driver = 'visca' with camera.port, and "
-                "capture.source = 'v4l2' with capture.device; use --sim for the simulator"
+                "capture.source = 'v4l2' with capture.device (or 'stream' with capture.url); "
+                "use --sim for the simulator"
             )
         try:
             lens = Lens.from_toml(config.lens.file)
@@ -434,7 +442,6 @@ class LabRig:
 
         cfg = self.config
         assert cfg.camera.port is not None  # validated with driver = 'visca'
-        assert cfg.capture.device is not None  # validated with source = 'v4l2'
         self._link = ViscaLink(cfg.camera.port, cfg.camera.baudrate)
         await self._link.__aenter__()
         self._camera = Camera(self._link, cfg.camera.address, self.profile)
@@ -443,11 +450,20 @@ class LabRig:
             if self.zoom_counts is not None:
                 await self._camera.zoom_direct(self.zoom_counts)
         # latency_s = 0: frame.t is the delivery (read) time, the clock of step_focus.
-        settings = CaptureSettings(
-            device=cfg.capture.device, width=cfg.capture.width, height=cfg.capture.height,
-            fps=cfg.capture.fps, fourcc=cfg.capture.fourcc, latency_s=0.0,
-        )  # fmt: skip
-        self._source = OpenCVFrameSource(settings)
+        if cfg.capture.source == "stream":
+            from drivers.stream import StreamFrameSource, StreamSettings
+
+            assert cfg.capture.url is not None  # validated with source = 'stream'
+            self._source = StreamFrameSource(
+                StreamSettings(cfg.capture.url, fps=cfg.capture.fps, timestamps="arrival")
+            )
+        else:
+            assert cfg.capture.device is not None  # validated with source = 'v4l2'
+            settings = CaptureSettings(
+                device=cfg.capture.device, width=cfg.capture.width, height=cfg.capture.height,
+                fps=cfg.capture.fps, fourcc=cfg.capture.fourcc, latency_s=0.0,
+            )  # fmt: skip
+            self._source = OpenCVFrameSource(settings)
         await self._source.start()
         return self
 

@@ -48,9 +48,9 @@ CONVERGED_TOL_M = 0.10
 TRUE_DEPTH_M = 4.0  # the static scenario (hil/scenarios/static.toml)
 BACKLOG_MAX = 20
 # Mid-exposure -> delivery of the simulator's MJPEG-over-HTTP frames: its own 1 frame + half the
-# exposure (35 ms) plus encode, loopback and decode: arrival minus the simulator's own frame times
-# was 47 ± 5 ms on the 2-core dev machine (ignored with video = "direct": the simulator stamps
-# its frames).
+# exposure (35 ms) plus encode, loopback and decode: `dffd calibrate --latency` read 49 ms and
+# arrival minus the simulator's frame times was 47 ± 5 ms on the 2-core dev machine (ignored with
+# video = "direct": the simulator stamps its frames).
 HTTP_VIDEO_LATENCY_S = 0.047
 
 KINDS = {

@@ -121,6 +121,15 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument("--out", type=Path, metavar="FILE", help="write the lens TOML here")
     parser.add_argument("--name", default="calibrated", help="lens name in the TOML file")
+    parser.add_argument(
+        "--latency", action="store_true",
+        help="measure the video latency of --config's camera and video ([capture] latency_s) "
+        "by focus steps, instead of the focus table",
+    )  # fmt: skip
+    parser.add_argument(
+        "--trials", type=int, default=None, metavar="N",
+        help="focus steps for --latency (default: dffd.latency.DEFAULT_TRIALS, 15)",
+    )  # fmt: skip
     parser.description = (
         "Fit the focus counts <-> v table from focus sweeps with the target at known depths and "
         "measure the capture latency. --sim: the simulated camera. --config FILE: the real "
