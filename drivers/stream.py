@@ -158,7 +158,7 @@ class StreamFrameSource:
             connected=self._connected,
             frames=self._frames,
             reconnects=self._reconnects,
-            stream_timestamps=self._stamps.using_stream,
+            stream_timestamps=self._stamps.using_stream or self.settings.is_file,
             latency_s=self.settings.latency_s,
         )
 
@@ -286,7 +286,8 @@ class StreamFrameSource:
                     continue
                 pts = capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
                 if s.is_file:
-                    # Deliver at the file's own rate, as a camera would: frame k at start + pts.
+                    # Deliver at the file's own rate, as a camera would: frame k at start + pts,
+                    # which is its exposure time on our clock (the file's timeline is ours).
                     if file_start is None:
                         file_start = self._clock() - pts
                     if self._stop.wait(max(0.0, file_start + pts - self._clock())):
@@ -297,7 +298,7 @@ class StreamFrameSource:
                     if periods > GAP_PERIODS:
                         self._gap_dropped += max(0, round(periods) - 1)
                 last_arrival = arrival
-                t = self._stamps.stamp(arrival, pts)
+                t = file_start + pts if file_start is not None else self._stamps.stamp(arrival, pts)
                 if s.gray and image.ndim == 3:
                     image = np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
                 self._remember(index, t)
