@@ -83,7 +83,11 @@ class CameraSection(_Section):
     )
     baudrate: Literal[9600, 38400] = 9600
     address: Annotated[int, Field(ge=1, le=7)] = 1
-    model: Literal["evi-d100", "evi-d70"] = "evi-d100"
+    model: Literal["evi-d100", "evi-d70", "srg-300"] = Field(
+        default="evi-d100",
+        description="camera model (its limits and speed tables); the camera's version inquiry "
+        "is checked against it at start-up",
+    )
 
     @field_validator("name")
     @classmethod

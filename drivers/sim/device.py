@@ -121,6 +121,9 @@ class DeviceConfig:
     autofocus_at_power_up: bool = True  # real cameras come up in AF: drivers must set manual
     network_change_at_power_up: bool = True
     reply_from_a0: bool = False  # firmware quirk (design.md §6): replies carry header A0, not 90
+    # Emulator quirk: the broadcast IF_Clear clears the sockets but is not echoed (the spec
+    # echoes it); a controller must fall back to each camera's own IF_Clear.
+    echo_if_clear_broadcast: bool = True
     vendor: int = VENDOR_SONY
     model: int = MODEL_EVI_D100
     rom: int = DEFAULT_ROM
@@ -426,7 +429,8 @@ class ViscaDevice:
         match request:
             case codec.IFClearBroadcast():
                 self._clear_sockets(t)
-                self._send(BroadcastEcho(request.to_message()), t)
+                if self.config.echo_if_clear_broadcast:
+                    self._send(BroadcastEcho(request.to_message()), t)
             case codec.IFClear():
                 self._clear_sockets(t)
                 self._send(InquiryReply(b""), t)

@@ -16,7 +16,6 @@ import asyncio
 import logging
 import math
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import Literal, TypeVar
 
 from drivers.visca.codec import (
@@ -43,11 +42,44 @@ from drivers.visca.codec import (
     ZoomPositionInquiry,
     check_range,
 )
-from drivers.visca.errors import ViscaError, ViscaNetworkChangeError, ViscaTimeoutError
+from drivers.visca.errors import (
+    ViscaError,
+    ViscaMessageLengthError,
+    ViscaNetworkChangeError,
+    ViscaSyntaxError,
+    ViscaTimeoutError,
+)
 from drivers.visca.link import CommandHandle, LinkApi
+from drivers.visca.profiles import (
+    EVI_D70,
+    EVI_D100,
+    PROFILES,
+    SRG_300,
+    CameraProfile,
+    SpeedCode,
+    check_degrees,
+    nearest_speed_code,
+    profile_for,
+    profile_for_version,
+)
 from drivers.visca.session import FIELD_S, POWER_COMPLETION_TIMEOUT_S
 
 logger = logging.getLogger(__name__)
+
+__all__ = [
+    "DEFAULT_RETRIES",
+    "EVI_D70",
+    "EVI_D100",
+    "MOVE_TIMEOUT_FACTOR",
+    "MOVE_TIMEOUT_MARGIN_S",
+    "PROFILES",
+    "SRG_300",
+    "Camera",
+    "CameraProfile",
+    "SpeedCode",
+    "profile_for",
+    "profile_for_version",
+]
 
 T = TypeVar("T")
 
@@ -63,120 +95,6 @@ FOCUS_POLL_PERIOD_S = 2 * FIELD_S
 DEFAULT_RETRIES = 1  # retries of an idempotent operation after a timeout or Network Change
 
 
-class SpeedCode(int):
-    """A raw VISCA pan/tilt speed code (01…18), as opposed to a speed in deg/s."""
-
-    __slots__ = ()
-
-
-@dataclass(frozen=True, slots=True)
-class CameraProfile:
-    """What differs between camera models: ranges, counts per degree, speed tables, timings."""
-
-    name: str
-    pan_range_deg: tuple[float, float]
-    tilt_range_deg: tuple[float, float]
-    pan_counts_per_deg: float
-    tilt_counts_per_deg: float
-    pan_speeds_deg_s: tuple[float, ...]  # deg/s of speed codes 01, 02, …
-    tilt_speeds_deg_s: tuple[float, ...]
-    focus_range: tuple[int, int]  # far end … near end, counts
-    zoom_range: tuple[int, int]  # wide … tele, counts
-    focus_full_travel_s: float  # worst-case Focus Direct end to end
-    zoom_full_travel_s: float  # worst-case Zoom Direct end to end
-    home_speed_deg_s: float  # speed of Home (the camera's own choice)
-    focus_completion_early: bool = False  # Completion before the lens has stopped
-    focus_settle_tolerance_counts: int = 0
-
-    @property
-    def max_pan_speed_code(self) -> int:
-        """Highest pan speed code."""
-        return len(self.pan_speeds_deg_s)
-
-    @property
-    def max_tilt_speed_code(self) -> int:
-        """Highest tilt speed code."""
-        return len(self.tilt_speeds_deg_s)
-
-    def pan_to_counts(self, pan_deg: float, field: str = "pan_deg") -> int:
-        """Absolute pan angle → position counts (ValueError outside the range)."""
-        return round(
-            _check_deg(field, pan_deg, self.pan_range_deg, self.name) * self.pan_counts_per_deg
-        )
-
-    def tilt_to_counts(self, tilt_deg: float, field: str = "tilt_deg") -> int:
-        """Absolute tilt angle → position counts (ValueError outside the range)."""
-        return round(
-            _check_deg(field, tilt_deg, self.tilt_range_deg, self.name) * self.tilt_counts_per_deg
-        )
-
-    def pan_speed_code(self, speed: float | SpeedCode | None, field: str = "speed") -> int:
-        """A pan speed (deg/s, or a SpeedCode; None = fastest) → speed code."""
-        return _speed_code(speed, self.pan_speeds_deg_s, field, self.name)
-
-    def tilt_speed_code(self, speed: float | SpeedCode | None, field: str = "tilt_speed") -> int:
-        """A tilt speed → speed code; a speed beyond the tilt table runs at the fastest tilt."""
-        if speed is not None and not isinstance(speed, SpeedCode):
-            _check_positive(field, speed)
-            speed = min(float(speed), self.tilt_speeds_deg_s[-1])
-        return _speed_code(speed, self.tilt_speeds_deg_s, field, self.name)
-
-
-# EVI-D100 (design.md §6; Sony EVI-D100 technical manual): pan ±100° = 0xFA60…0x05A0, tilt ±25° =
-# 0xFE98…0x0168, 14.4 counts/°; pan codes 01…18, tilt 01…14 share one table.
-_D100_SPEEDS = (
-    2.0, 2.4, 3.0, 3.7, 4.7, 6.1, 7.4, 9.1, 11.0, 14.0, 18.0, 22.0,
-    27.0, 34.0, 42.0, 52.0, 65.0, 81.0, 100.0, 125.0, 155.0, 190.0, 240.0, 300.0,
-)  # fmt: skip
-EVI_D100 = CameraProfile(
-    name="EVI-D100",
-    pan_range_deg=(-100.0, 100.0),
-    tilt_range_deg=(-25.0, 25.0),
-    pan_counts_per_deg=14.4,
-    tilt_counts_per_deg=14.4,
-    pan_speeds_deg_s=_D100_SPEEDS,
-    tilt_speeds_deg_s=_D100_SPEEDS[:0x14],
-    focus_range=(0x1000, 0x8400),
-    zoom_range=(0x0000, 0x4000),
-    focus_full_travel_s=2.0,  # Focus Direct ~2 s worst case end to end (issue 2)
-    zoom_full_travel_s=2.5,
-    home_speed_deg_s=300.0,
-)
-
-# EVI-D70 (Sony EVI-D70 technical manual, "Pan/tilt position" in the D30/D31 and D70-mode
-# tables): pan −170…+170° = 0xF725…0x08DB (±2267), tilt −30…+90° = 0xFE70…0x04B0 (−400…+1200),
-# i.e. 13.33 counts/° on both axes; focus 0x1000 (far) … 0xC000 (near, 10 cm); optical zoom
-# 0x0000…0x4000 (digital to 0x7AC0 is not used for depth from focus). Speed codes: pan 01…18,
-# tilt 01…17, maxima 100 °/s pan and 90 °/s tilt (spec sheet). ASSUMPTION: the per-code table
-# was not found in the sources available; it is taken log-spaced from 2 °/s (as the D100's
-# code 01) to those maxima. Verify on hardware before relying on deg/s for this model.
-EVI_D70 = CameraProfile(
-    name="EVI-D70",
-    pan_range_deg=(-170.0, 170.0),
-    tilt_range_deg=(-30.0, 90.0),
-    pan_counts_per_deg=2267 / 170,
-    tilt_counts_per_deg=1200 / 90,
-    pan_speeds_deg_s=tuple(round(2.0 * (100.0 / 2.0) ** (i / 23), 2) for i in range(24)),
-    tilt_speeds_deg_s=tuple(round(2.0 * (90.0 / 2.0) ** (i / 22), 2) for i in range(23)),
-    focus_range=(0x1000, 0xC000),
-    zoom_range=(0x0000, 0x4000),
-    focus_full_travel_s=2.5,
-    zoom_full_travel_s=2.5,
-    home_speed_deg_s=100.0,
-)
-
-PROFILES: dict[str, CameraProfile] = {"evi-d100": EVI_D100, "evi-d70": EVI_D70}
-
-
-def profile_for(model: str) -> CameraProfile:
-    """The profile of ``model`` (case-insensitive, e.g. ``"EVI-D100"``); ValueError lists them."""
-    try:
-        return PROFILES[model.strip().lower()]
-    except KeyError:
-        known = ", ".join(p.name for p in PROFILES.values())
-        raise ValueError(f"unknown camera model {model!r}; known models: {known}") from None
-
-
 class Camera:
     """One VISCA camera at ``address`` on ``link``, in user units."""
 
@@ -188,11 +106,15 @@ class Camera:
         *,
         retries: int = DEFAULT_RETRIES,
         move_timeout_margin_s: float = MOVE_TIMEOUT_MARGIN_S,
+        adopt_profile: bool = True,
     ) -> None:
         check_range("camera address", address, 1, 7)
         self.link = link
         self.address = address
         self.profile = profile
+        # At initialise, switch to the profile of the model the camera identifies as (its real
+        # limits); False keeps ``profile`` whatever the camera says (both warn on a mismatch).
+        self.adopt_profile = adopt_profile
         self.retries = retries
         self.move_timeout_margin_s = move_timeout_margin_s
         self.version_info: Version | None = None
@@ -226,12 +148,12 @@ class Camera:
 
     async def start_focus_direct(self, counts: int) -> CommandHandle:
         """Send Focus Direct and return its handle (ACK and Completion awaited by the caller)."""
-        request = FocusDirect(_check_int("counts", counts, self.profile.focus_range))
+        request = FocusDirect(self.profile.check_focus(counts))
         return self.link.submit(self.address, request, completion_timeout=self._focus_timeout_s())
 
     async def focus_direct(self, counts: int) -> None:
         """Move the focus to ``counts``; return once the lens has stopped."""
-        request = FocusDirect(_check_int("counts", counts, self.profile.focus_range))
+        request = FocusDirect(self.profile.check_focus(counts))
         await self._command(request, self._focus_timeout_s())
         if self.profile.focus_completion_early:
             await self._wait_focus_settled(counts)
@@ -273,7 +195,7 @@ class Camera:
 
     async def zoom_direct(self, counts: int) -> None:
         """Move the zoom to ``counts``; return once it has stopped."""
-        request = ZoomDirect(_check_int("counts", counts, self.profile.zoom_range))
+        request = ZoomDirect(self.profile.check_zoom(counts))
         timeout = self.profile.zoom_full_travel_s * MOVE_TIMEOUT_FACTOR + self.move_timeout_margin_s
         await self._command(request, timeout)
 
@@ -394,6 +316,23 @@ class Camera:
                     raise
                 attempt += 1
                 logger.debug("camera %d: retrying after %s", self.address, exc)
+            except (ViscaSyntaxError, ViscaMessageLengthError) as exc:
+                raise exc.with_hint(self._device_side_hint()) from exc
+
+    def _device_side_hint(self) -> str:
+        """Advice for a syntax or length error on a request this API checked before sending."""
+        who = ""
+        if self.version_info is not None:
+            v = self.version_info
+            known = profile_for_version(v.vendor, v.model)
+            named = f", the {known.name}" if known is not None else ", a model unknown to dffd"
+            who = f" (it identifies as vendor 0x{v.vendor:04X} model 0x{v.model:04X}{named})"
+        return (
+            f"every value was checked against the {self.profile.name} profile before it was "
+            f"sent, so the device is the likely side at fault: its firmware does not implement "
+            f"the command this way, or it is not a {self.profile.name}{who}; check camera.model "
+            "and the camera's manual (the raw packets are in the DEBUG log)"
+        )
 
     def _focus_timeout_s(self) -> float:
         return self.profile.focus_full_travel_s * MOVE_TIMEOUT_FACTOR + self.move_timeout_margin_s
@@ -414,10 +353,11 @@ class Camera:
             tilt = p.tilt_to_counts(tilt_deg)
         else:
             pan = round(
-                _check_deg("pan_deg", pan_deg, (-pan_span, pan_span), p.name) * p.pan_counts_per_deg
+                check_degrees("pan_deg", pan_deg, (-pan_span, pan_span), p.name)
+                * p.pan_counts_per_deg
             )
             tilt = round(
-                _check_deg("tilt_deg", tilt_deg, (-tilt_span, tilt_span), p.name)
+                check_degrees("tilt_deg", tilt_deg, (-tilt_span, tilt_span), p.name)
                 * p.tilt_counts_per_deg
             )
         pan_code = p.pan_speed_code(speed, "speed")
@@ -458,16 +398,44 @@ class Camera:
             logger.info("camera %d is in standby: powering on", self.address)
             await self.power(on=True)
         version = await self.version()
+        self.version_info = version
+        self._adopt_profile(version)
         if version.max_sockets in (1, 2):
             self.link.set_max_sockets(self.address, version.max_sockets)
         await self.focus_mode(auto=False)
-        self.version_info = version
         logger.info(
             "camera %d (%s profile) ready: vendor %04X model %04X rom %04X, %d socket(s)",
             self.address, self.profile.name, version.vendor, version.model, version.rom,
             version.max_sockets,
         )  # fmt: skip
         return version
+
+    def _adopt_profile(self, version: Version) -> None:
+        """Use the profile of the model the camera identifies as; warn on a mismatch."""
+        found = profile_for_version(version.vendor, version.model)
+        if found is None:
+            if self.adopt_profile:
+                logger.warning(
+                    "camera %d identifies as vendor 0x%04X model 0x%04X, which dffd has no profile "
+                    "for; using the configured %s profile's limits — check that they hold for this "
+                    "camera (known models: %s)",
+                    self.address, version.vendor, version.model, self.profile.name,
+                    ", ".join(p.name for p in PROFILES.values()),
+                )  # fmt: skip
+            return
+        if found.key == self.profile.key:
+            return  # the configured model (possibly a customised copy of its profile): keep it
+        configured = self.profile
+        if self.adopt_profile:
+            self.profile = found
+        logger.warning(
+            "camera %d identifies as the %s (vendor 0x%04X model 0x%04X) but camera.model names "
+            "the %s: %s; set camera.model = %r (the scheduler's speed tables and the focus range "
+            "come from the configured model)",
+            self.address, found.name, version.vendor, version.model, configured.name,
+            f"using the {found.name}'s limits" if self.adopt_profile else "keeping the configured",
+            found.key,
+        )  # fmt: skip
 
     async def _reinit_step(self, link: LinkApi) -> None:
         # The same set-up, through the re-initialisation's pass of the link's gate.
@@ -478,57 +446,15 @@ class Camera:
             self.profile,
             retries=self.retries,
             move_timeout_margin_s=self.move_timeout_margin_s,
+            adopt_profile=self.adopt_profile,
         )
         self.version_info = await shadow._setup()
+        self.profile = shadow.profile
 
 
 # --------------------------------------------------------------------------------------------
 # Private helpers
 # --------------------------------------------------------------------------------------------
-
-
-def _check_deg(field: str, value: float, limits: tuple[float, float], model: str) -> float:
-    low, high = limits
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ValueError(
-            f"{field} must be a finite number of degrees in [{low}, {high}], got {value!r}"
-        )
-    if not low <= value <= high:
-        raise ValueError(f"{field} = {value}° is out of range [{low}°, {high}°] for the {model}")
-    return float(value)
-
-
-def _check_int(field: str, value: int, limits: tuple[int, int]) -> int:
-    return check_range(field, value, *limits)
-
-
-def _check_positive(field: str, value: float) -> None:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ValueError(f"{field} must be a finite speed in deg/s, got {value!r}")
-    if value <= 0:
-        raise ValueError(f"{field} = {value} deg/s must be positive")
-
-
-def _speed_code(
-    speed: float | SpeedCode | None, table: tuple[float, ...], field: str, model: str
-) -> int:
-    if speed is None:
-        return len(table)
-    if isinstance(speed, SpeedCode):
-        return check_range(f"{field} code", int(speed), 1, len(table))
-    _check_positive(field, speed)
-    if speed > table[-1]:
-        raise ValueError(
-            f"{field} = {speed} deg/s is out of range (0, {table[-1]}] deg/s for the {model}"
-        )
-    return _nearest_code(float(speed), table)
-
-
-def _nearest_code(speed: float, table: tuple[float, ...]) -> int:
-    """Speed code (≥ 01) nearest ``speed`` in ratio (the speed tables are geometric)."""
-    target = math.log(speed)
-    best = min(range(len(table)), key=lambda i: abs(math.log(table[i]) - target))
-    return best + 1
 
 
 def _drive_axis(
@@ -552,4 +478,4 @@ def _drive_axis(
         )
     if speed_deg_s == 0:
         return stop, 1  # speed 00 is a syntax error on some models: always send ≥ 01
-    return (positive if speed_deg_s > 0 else negative), _nearest_code(abs(speed_deg_s), table)
+    return (positive if speed_deg_s > 0 else negative), nearest_speed_code(abs(speed_deg_s), table)

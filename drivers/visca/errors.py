@@ -19,32 +19,51 @@ class ViscaErrorReply(ViscaError):  # noqa: N818 - the name the design gives it
 
     hint = "check the command and the camera's state"
 
-    def __init__(self, code: int, socket: int, address: int = 0, request: str = "") -> None:
+    def __init__(
+        self, code: int, socket: int, address: int = 0, request: str = "", hint: str = ""
+    ) -> None:
         self.code = code
         self.socket = socket
         self.address = address
         self.request = request
+        self.context_hint = hint  # the caller's better-informed hint (replaces the class's)
         where = f"camera {address}" if address else "camera"
         what = f" to {request}" if request else ""
         super().__init__(
             f"{where} replied error 0x{code:02X} ({ErrorCode.describe(code)}) in socket {socket}"
-            f"{what}: {self.hint}"
+            f"{what}: {hint or self.hint}"
         )
 
-    def __reduce__(self) -> tuple[type[ViscaErrorReply], tuple[int, int, int, str]]:
-        return (type(self), (self.code, self.socket, self.address, self.request))
+    def with_hint(self, hint: str) -> ViscaErrorReply:
+        """The same error (same class and data) with ``hint`` as its advice."""
+        return type(self)(self.code, self.socket, self.address, self.request, hint)
+
+    def __reduce__(self) -> tuple[type[ViscaErrorReply], tuple[int, int, int, str, str]]:
+        return (
+            type(self),
+            (self.code, self.socket, self.address, self.request, self.context_hint),
+        )
 
 
 class ViscaMessageLengthError(ViscaErrorReply):
     """Error 01: the packet was too long or too short for the camera."""
 
-    hint = "the driver framed a bad packet; report it as a driver bug"
+    hint = (
+        "the camera rejected the packet's length; the driver frames every packet as the VISCA "
+        "spec gives it, so a device that does not implement this command (firmware, or a model "
+        "other than camera.model) is the likely cause — if the camera's manual lists this command "
+        "with these bytes, report it with the DEBUG log"
+    )
 
 
 class ViscaSyntaxError(ViscaErrorReply):
     """Error 02: the camera does not understand the command (or an argument is out of range)."""
 
-    hint = "the camera model may not support this command; check the camera profile"
+    hint = (
+        "the camera does not accept this command or one of its values: check that camera.model "
+        "names this camera (its version inquiry identifies it) and that its firmware supports "
+        "the command"
+    )
 
 
 class ViscaBufferFullError(ViscaErrorReply):

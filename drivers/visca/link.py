@@ -30,6 +30,7 @@ from drivers.visca.codec import (
     Broadcast,
     Cancel,
     Command,
+    IFClear,
     IFClearBroadcast,
     InquiryData,
     Reply,
@@ -38,6 +39,7 @@ from drivers.visca.codec import (
 from drivers.visca.errors import (
     LinkDownError,
     ViscaError,
+    ViscaTimeoutError,
 )
 from drivers.visca.session import (
     ACK_TIMEOUT_S,
@@ -455,7 +457,18 @@ class ViscaLink:
             if not isinstance(reply, AddressSetReply):  # pragma: no cover - matched by type
                 raise ViscaError(f"Address Set answered by {reply!r}")
             self.chain_length = reply.next_address - 1
-            await self.broadcast(IFClearBroadcast())
+            try:
+                await self.broadcast(IFClearBroadcast())
+            except ViscaTimeoutError:
+                # The spec echoes the broadcast IF_Clear; some devices and emulators clear but
+                # stay silent. Each camera's own IF_Clear (answered z0 50 FF) does the same.
+                logger.warning(
+                    "the broadcast IF_Clear was not echoed on %s; clearing each of the %d "
+                    "camera(s) with its own IF_Clear instead",
+                    self.url, self.chain_length,
+                )  # fmt: skip
+                for address in range(1, self.chain_length + 1):
+                    await self._inquire(address, IFClear(), privileged=True)
             self._addressed = True
             self._session.mark_addressed()
             logger.info("VISCA chain on %s addressed: %d camera(s)", self.url, self.chain_length)

@@ -1,0 +1,107 @@
+"""Driver hardening against the simulated camera on a real pty.
+
+Values are checked against the model's limits before a byte is sent; an error the device returns
+for a request the driver validated points at the device (firmware or model), not at the driver;
+a device that does not echo the broadcast IF_Clear is still initialised; the model the camera
+identifies as picks its profile, with a warning when the configuration names another one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import pytest
+
+from drivers.sim.device import MODEL_EVI_D70, DeviceConfig
+from drivers.sim.server import SimCameraServer
+from drivers.visca.camera import EVI_D70, EVI_D100, SRG_300, Camera, profile_for_version
+from drivers.visca.errors import ViscaSyntaxError
+from drivers.visca.link import ViscaLink
+from tests.visca_support import FAST, sim_camera
+
+# A device that does not echo the broadcast IF_Clear costs one broadcast timeout at start-up.
+SILENT_BROADCAST = dataclasses.replace(FAST, broadcast_s=0.2)
+
+
+# (call, the error it must raise): value, limit and model named.
+OUT_OF_RANGE = (
+    ("pan_tilt_absolute", (-480.0, 0.0), {},
+     r"pan_deg = -480(\.0)?° is out of range \[-100\.0°, 100\.0°\] for the EVI-D100"),
+    ("focus_direct", (50_000,), {},
+     r"focus counts = 50000 \(0xC350\) is out of range \[0x1000, 0x8400\] for the EVI-D100"),
+    ("zoom_direct", (20_000,), {}, r"zoom counts = 20000 .* for the EVI-D100"),
+    ("pan_tilt_absolute", (10.0, 0.0), {"speed": 500.0},
+     r"speed = 500(\.0)? deg/s is out of range .* for the EVI-D100"),
+    ("pan_tilt_drive", (10.0, -400.0), {},
+     r"tilt_speed_deg_s = -400(\.0)? deg/s .* for the EVI-D100"),
+)  # fmt: skip
+
+
+async def test_out_of_range_values_are_refused_before_anything_is_sent() -> None:
+    async with sim_camera() as (_server, link, camera):
+        sent = link.health().bytes_out
+        for name, args, kwargs, message in OUT_OF_RANGE:
+            with pytest.raises(ValueError, match=message):
+                await getattr(camera, name)(*args, **kwargs)
+        assert link.health().bytes_out == sent
+
+
+async def test_a_syntax_error_after_validation_points_at_the_device() -> None:
+    # The driver is told the camera is a D70 (focus up to 0xC000) and keeps that profile; the
+    # device is a D100 (focus up to 0x8400), which answers a syntax error.
+    async with (
+        SimCameraServer(DeviceConfig()) as server,
+        ViscaLink(server.path, timeouts=FAST) as link,
+    ):
+        camera = Camera(link, 1, EVI_D70, adopt_profile=False)
+        await camera.initialize()
+        with pytest.raises(ViscaSyntaxError) as caught:
+            await camera.focus_direct(0xB000)
+    text = str(caught.value)
+    assert "device is the likely side at fault" in text
+    assert "checked against the EVI-D70 profile" in text
+    assert "vendor 0x0001 model 0x040D, the EVI-D100" in text
+    assert "driver bug" not in text
+    assert caught.value.code == 0x02
+
+
+async def test_a_device_that_does_not_echo_the_if_clear_broadcast_is_initialised(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="drivers.visca.link")
+    config = DeviceConfig(echo_if_clear_broadcast=False)
+    async with sim_camera(config, timeouts=SILENT_BROADCAST) as (server, link, camera):
+        assert await camera.focus_position() > 0
+        await camera.focus_direct(0x2000)
+        assert await camera.focus_position() == 0x2000
+    assert "broadcast IF_Clear was not echoed" in caplog.text
+    assert link.chain_length == 1
+    assert server.device.stats.packets_in > 0
+
+
+async def test_the_model_the_camera_reports_picks_its_profile(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="drivers.visca.camera")
+    async with sim_camera(DeviceConfig(model=MODEL_EVI_D70), profile=EVI_D100) as (_, _, camera):
+        assert camera.profile is EVI_D70
+        assert camera.version_info is not None
+    assert "identifies as the EVI-D70" in caplog.text
+    assert "set camera.model = 'evi-d70'" in caplog.text
+
+
+async def test_an_unknown_model_keeps_the_configured_profile_with_a_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="drivers.visca.camera")
+    async with sim_camera(DeviceConfig(model=0x0777), profile=EVI_D100) as (_, _, camera):
+        assert camera.profile is EVI_D100
+    assert "model 0x0777, which dffd has no profile for" in caplog.text
+
+
+def test_identities_map_to_profiles() -> None:
+    assert profile_for_version(0x0001, 0x040D) is EVI_D100
+    assert profile_for_version(0x0020, 0x040E) is EVI_D70  # FCB-style Sony vendor ID
+    assert profile_for_version(0x0001, 0x0516) is SRG_300
+    assert profile_for_version(0x0001, 0x7777) is None
