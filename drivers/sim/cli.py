@@ -18,6 +18,7 @@ from urllib.parse import urlsplit
 from drivers.sim.device import DeviceConfig
 from drivers.sim.faults import Faults, FaultSpecError
 from drivers.sim.ip_server import SimUdpServer
+from drivers.sim.models import SIM_MODELS, sim_model
 from drivers.sim.net_server import SimTcpServer
 from drivers.sim.server import SimCameraServer
 
@@ -68,6 +69,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         help="position of the camera in the daisy chain, 1–7 (its address after Address Set)",
     )
     parser.add_argument(
+        "--model",
+        default="evi-d100",
+        choices=sorted(SIM_MODELS),
+        help="camera model: its pan/tilt/focus/zoom limits, speed tables and VersionInq identity "
+        "(default evi-d100)",
+    )
+    parser.add_argument(
         "--reply-from-a0",
         action="store_true",
         help="firmware quirk: send replies with header A0 instead of 90 (driver tests)",
@@ -83,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
             baud=args.baud,
             pace=not args.no_pace,
             reply_from_a0=args.reply_from_a0,
+            camera=sim_model(args.model),
         )
     except FaultSpecError as exc:
         print(f"dffd sim-camera: --faults: {exc}", file=sys.stderr)

@@ -42,6 +42,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from drivers.sim.faults import Faults
+from drivers.sim.models import EVI_D100 as SIM_EVI_D100
+from drivers.sim.models import SimModel
 from drivers.sim.state import Axis, CameraState
 from drivers.visca import codec
 from drivers.visca.codec import (
@@ -124,8 +126,9 @@ class DeviceConfig:
     # Emulator quirk: the broadcast IF_Clear clears the sockets but is not echoed (the spec
     # echoes it); a controller must fall back to each camera's own IF_Clear.
     echo_if_clear_broadcast: bool = True
-    vendor: int = VENDOR_SONY
-    model: int = MODEL_EVI_D100
+    camera: SimModel = SIM_EVI_D100  # limits, speeds and identity (drivers/sim/models.py)
+    vendor: int | None = None  # VersionInq vendor; None: the camera model's
+    model: int | None = None  # VersionInq model code; None: the camera model's
     rom: int = DEFAULT_ROM
     sockets: int = 2
 
@@ -183,6 +186,13 @@ class ViscaDevice:
     ) -> None:
         self.state = state
         self.config = config or DeviceConfig()
+        self.camera = self.config.camera
+        state.set_limits(
+            pan_deg=self.camera.pan_limits_deg,
+            tilt_deg=self.camera.tilt_limits_deg,
+            focus=self.camera.focus_range,
+            zoom=self.camera.zoom_range,
+        )
         self.faults = faults or Faults()
         # Where AF would put the focus at time t (the optics simulator may provide it); without
         # it One Push AF leaves the lens where it is.
@@ -417,7 +427,7 @@ class ViscaDevice:
                 self._address_set(packet.message[1], t)
                 return
             request = codec.decode_request(packet)
-            _check_model_ranges(request)
+            _check_model_ranges(request, self.camera)
         except ValueError as exc:  # CodecError, or out of range for this model
             logger.debug("sim camera: syntax error for %s: %s", raw.hex(" "), exc)
             self._send(ErrorReply(0, ErrorCode.SYNTAX), t)
@@ -489,14 +499,19 @@ class ViscaDevice:
                     return codec.PowerState(on=st.powered).to_data()
                 case codec.PanTiltPositionInquiry():
                     return codec.PanTiltPosition(
-                        pan=round(st.pan.position(t) * COUNTS_PER_DEGREE),
-                        tilt=round(st.tilt.position(t) * COUNTS_PER_DEGREE),
+                        pan=round(st.pan.position(t) * self.camera.pan_counts_per_deg),
+                        tilt=round(st.tilt.position(t) * self.camera.tilt_counts_per_deg),
                     ).to_data()
                 case codec.PanTiltMaxSpeedInquiry():
-                    return codec.PanTiltMaxSpeed(MAX_PAN_SPEED_CODE, MAX_TILT_SPEED_CODE).to_data()
+                    cam = self.camera
+                    return codec.PanTiltMaxSpeed(
+                        cam.max_pan_speed_code, cam.max_tilt_speed_code
+                    ).to_data()
                 case codec.VersionInquiry():
                     cfg = self.config
-                    return codec.Version(cfg.vendor, cfg.model, cfg.rom, cfg.sockets).to_data()
+                    vendor = self.camera.vendor if cfg.vendor is None else cfg.vendor
+                    model = self.camera.model if cfg.model is None else cfg.model
+                    return codec.Version(vendor, model, cfg.rom, cfg.sockets).to_data()
         raise AssertionError(f"not an inquiry: {request!r}")
 
     def _command(self, request: codec.Request, t: float) -> None:
@@ -574,37 +589,37 @@ class ViscaDevice:
                 return "zoom", end, ((st.zoom, counts),)
             case codec.PanTiltDrive():
                 self._supersede("pantilt", t)
-                _drive(st, request, t)
+                _drive(st, request, t, self.camera)
                 return None
             case codec.PanTiltAbsolute() | codec.PanTiltRelative():
                 self._supersede("pantilt", t)
-                pan_deg = request.pan / COUNTS_PER_DEGREE
-                tilt_deg = request.tilt / COUNTS_PER_DEGREE
+                pan_deg = request.pan / self.camera.pan_counts_per_deg
+                tilt_deg = request.tilt / self.camera.tilt_counts_per_deg
                 if isinstance(request, codec.PanTiltRelative):
                     pan_deg = _clamp(st.pan, pan_deg + st.pan.position(t))
                     tilt_deg = _clamp(st.tilt, tilt_deg + st.tilt.position(t))
                 end = max(
-                    st.pan.move_to(pan_deg, speed_deg_s(request.pan_speed), t),
-                    st.tilt.move_to(tilt_deg, speed_deg_s(request.tilt_speed), t),
+                    st.pan.move_to(pan_deg, _pan_speed(self.camera, request.pan_speed), t),
+                    st.tilt.move_to(tilt_deg, _tilt_speed(self.camera, request.tilt_speed), t),
                 )
                 return "pantilt", end, ((st.pan, pan_deg), (st.tilt, tilt_deg))
             case codec.PanTiltHome():
                 self._supersede("pantilt", t)
-                return "pantilt", _move_pan_tilt(st, 0.0, 0.0, t), _home(st)
+                return "pantilt", _move_pan_tilt(st, 0.0, 0.0, t, self.camera), _home(st)
             case codec.PanTiltReset():
                 # Runs to the lower end stops, then home, at full speed.
                 self._supersede("pantilt", t)
-                leg = _move_pan_tilt(st, st.pan.low, st.tilt.low, t)
+                leg = _move_pan_tilt(st, st.pan.low, st.tilt.low, t, self.camera)
                 first = (st.pan.arrival_time(), st.tilt.arrival_time())
 
                 def second_leg(at: float) -> None:
                     # Only if nothing (cancel, a newer move, power loss) replaced the first leg.
                     with st.lock:
                         if (st.pan.arrival_time(), st.tilt.arrival_time()) == first:
-                            _move_pan_tilt(st, 0.0, 0.0, at)
+                            _move_pan_tilt(st, 0.0, 0.0, at, self.camera)
 
                 self._schedule(leg, second_leg)
-                return "pantilt", leg + _travel_s(st.pan.low, st.tilt.low), _home(st)
+                return "pantilt", leg + _travel_s(st.pan.low, st.tilt.low, self.camera), _home(st)
         raise AssertionError(f"unhandled command {request!r}")
 
     def _finish(self, socket: int, token: int, t: float) -> None:
@@ -720,53 +735,65 @@ def _is_address_set(message: bytes) -> bool:
     return len(message) == 2 and message[0] == 0x30 and 1 <= message[1] <= 7
 
 
-def _check_model_ranges(request: codec.Request) -> None:
-    """Raise ValueError for arguments the wire format allows but an EVI-D100 does not."""
+def _check_model_ranges(request: codec.Request, cam: SimModel) -> None:
+    """Raise ValueError for arguments the wire format allows but the camera model does not."""
+    pan_codes, tilt_codes = cam.max_pan_speed_code, cam.max_tilt_speed_code
     match request:
         case codec.FocusDirect(counts=counts):
-            codec.check_range("focus counts", counts, *FOCUS_RANGE)
+            codec.check_range("focus counts", counts, *cam.focus_range)
         case codec.ZoomDirect(counts=counts):
-            codec.check_range("zoom counts", counts, *ZOOM_RANGE)
+            codec.check_range("zoom counts", counts, *cam.zoom_range)
         case codec.PanTiltDrive(pan_speed=pan_speed, tilt_speed=tilt_speed):
-            codec.check_range("pan speed", pan_speed, 1, MAX_PAN_SPEED_CODE)
-            codec.check_range("tilt speed", tilt_speed, 1, MAX_TILT_SPEED_CODE)
+            codec.check_range("pan speed", pan_speed, 1, pan_codes)
+            codec.check_range("tilt speed", tilt_speed, 1, tilt_codes)
         case codec.PanTiltAbsolute():
-            codec.check_range("pan speed", request.pan_speed, 1, MAX_PAN_SPEED_CODE)
-            codec.check_range("tilt speed", request.tilt_speed, 1, MAX_TILT_SPEED_CODE)
-            codec.check_range("pan position", request.pan, -PAN_LIMIT_COUNTS, PAN_LIMIT_COUNTS)
-            codec.check_range("tilt position", request.tilt, -TILT_LIMIT_COUNTS, TILT_LIMIT_COUNTS)
+            codec.check_range("pan speed", request.pan_speed, 1, pan_codes)
+            codec.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
+            codec.check_range("pan position", request.pan, *cam.pan_limit_counts)
+            codec.check_range("tilt position", request.tilt, *cam.tilt_limit_counts)
         case codec.PanTiltRelative():
-            codec.check_range("pan speed", request.pan_speed, 1, MAX_PAN_SPEED_CODE)
-            codec.check_range("tilt speed", request.tilt_speed, 1, MAX_TILT_SPEED_CODE)
-            span_pan, span_tilt = 2 * PAN_LIMIT_COUNTS, 2 * TILT_LIMIT_COUNTS
+            codec.check_range("pan speed", request.pan_speed, 1, pan_codes)
+            codec.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
+            pan_low, pan_high = cam.pan_limit_counts
+            tilt_low, tilt_high = cam.tilt_limit_counts
+            span_pan, span_tilt = pan_high - pan_low, tilt_high - tilt_low
             codec.check_range("pan offset", request.pan, -span_pan, span_pan)
             codec.check_range("tilt offset", request.tilt, -span_tilt, span_tilt)
         case _:
             pass
 
 
-def _drive(st: CameraState, request: codec.PanTiltDrive, t: float) -> None:
+def _pan_speed(cam: SimModel, code: int) -> float:
+    codec.check_range("pan speed code", code, 1, cam.max_pan_speed_code)
+    return cam.pan_speeds_deg_s[code - 1]
+
+
+def _tilt_speed(cam: SimModel, code: int) -> float:
+    codec.check_range("tilt speed code", code, 1, cam.max_tilt_speed_code)
+    return cam.tilt_speeds_deg_s[code - 1]
+
+
+def _drive(st: CameraState, request: codec.PanTiltDrive, t: float, cam: SimModel) -> None:
     pan_dir = {codec.PanDirection.LEFT: -1, codec.PanDirection.RIGHT: 1}.get(request.pan)
     tilt_dir = {codec.TiltDirection.DOWN: -1, codec.TiltDirection.UP: 1}.get(request.tilt)
     if pan_dir is None:
         st.pan.stop(t)
     else:
-        st.pan.drive(pan_dir, speed_deg_s(request.pan_speed), t)
+        st.pan.drive(pan_dir, _pan_speed(cam, request.pan_speed), t)
     if tilt_dir is None:
         st.tilt.stop(t)
     else:
-        st.tilt.drive(tilt_dir, speed_deg_s(request.tilt_speed), t)
+        st.tilt.drive(tilt_dir, _tilt_speed(cam, request.tilt_speed), t)
 
 
-def _move_pan_tilt(st: CameraState, pan_deg: float, tilt_deg: float, t: float) -> float:
+def _move_pan_tilt(
+    st: CameraState, pan_deg: float, tilt_deg: float, t: float, cam: SimModel
+) -> float:
     return max(
-        st.pan.move_to(pan_deg, speed_deg_s(MAX_PAN_SPEED_CODE), t),
-        st.tilt.move_to(tilt_deg, speed_deg_s(MAX_TILT_SPEED_CODE), t),
+        st.pan.move_to(pan_deg, cam.pan_speeds_deg_s[-1], t),
+        st.tilt.move_to(tilt_deg, cam.tilt_speeds_deg_s[-1], t),
     )
 
 
-def _travel_s(pan_deg: float, tilt_deg: float) -> float:
-    return max(
-        abs(pan_deg) / speed_deg_s(MAX_PAN_SPEED_CODE),
-        abs(tilt_deg) / speed_deg_s(MAX_TILT_SPEED_CODE),
-    )
+def _travel_s(pan_deg: float, tilt_deg: float, cam: SimModel) -> float:
+    return max(abs(pan_deg) / cam.pan_speeds_deg_s[-1], abs(tilt_deg) / cam.tilt_speeds_deg_s[-1])

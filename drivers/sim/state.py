@@ -147,6 +147,27 @@ class CameraState:
         self.focus = Axis("focus", self.initial_focus, *self.focus_limits, t=now)
         self.zoom = Axis("zoom", self.initial_zoom, *self.zoom_limits, t=now)
 
+    def set_limits(
+        self,
+        *,
+        pan_deg: tuple[float, float],
+        tilt_deg: tuple[float, float],
+        focus: tuple[float, float],
+        zoom: tuple[float, float],
+    ) -> None:
+        """Change the end stops (a camera model's); positions outside are clamped into them."""
+        with self.lock:
+            now = self.clock()
+            self.pan_limits_deg, self.tilt_limits_deg = pan_deg, tilt_deg
+            self.focus_limits, self.zoom_limits = focus, zoom
+            for axis, (low, high) in (
+                (self.pan, pan_deg), (self.tilt, tilt_deg), (self.focus, focus), (self.zoom, zoom),
+            ):  # fmt: skip
+                if (axis.low, axis.high) != (low, high):
+                    position = axis.position(now)
+                    axis.low, axis.high = low, high
+                    axis.jump(position, now)
+
     def now(self) -> float:
         """The state's clock."""
         return self.clock()
