@@ -372,6 +372,12 @@ async def test_estimates_converge_with_the_simulated_camera_on_visca_over_ip(
             assert any(m["fit"]["accepted"] for m in sub.messages["measurement"])
             status = [s for s in sub.messages["status"] if s["availability"] == "online"][-1]
             assert status["link"]["connected"] is True
+            assert status["link"]["ip_resets"] >= 1  # VISCA-over-IP channel counters reported
+            assert status["link"]["ip_retransmits"] is not None
+            if video == "http":
+                assert status["video"]["connected"] is True
+                assert status["video"]["reconnects"] == 0
+                assert status["video"]["stream_timestamps"] is False  # MJPEG: arrival times
             assert sub.invalid == []
             code, _ = daemon.terminate()
         finally:

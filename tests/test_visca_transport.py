@@ -216,6 +216,11 @@ async def test_visca_ip_under_loss_duplication_and_reordering_returns_true_resul
                 assert stats.retransmits > 0
                 assert stats.duplicates > 0
                 assert link.health().stray_replies == 0
+                # The same counters reach the link's health (what the daemon's status reports).
+                ip = link.health().ip
+                assert ip is not None
+                assert ip.retransmits == stats.retransmits
+                assert ip.resets >= 1  # the RESET at connect
         finally:
             assert relay.udp is not None
             relay.udp.close()

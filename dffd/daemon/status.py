@@ -231,6 +231,10 @@ def link_health(link: ViscaLink | None, now: float) -> models.LinkHealth:
         timeouts=sum(h.timeouts.values()),
         last_reply_age_s=age,
         reconnects=h.reconnects,
+        ip_retransmits=None if h.ip is None else h.ip.retransmits,
+        ip_given_up=None if h.ip is None else h.ip.given_up,
+        ip_sequence_errors=None if h.ip is None else h.ip.sequence_errors,
+        ip_resets=None if h.ip is None else h.ip.resets,
     )
 
 

@@ -207,6 +207,18 @@ class LinkHealth(BaseModel):
     timeouts: NonNegInt = 0
     last_reply_age_s: Annotated[float, Field(ge=0)] | None = None
     reconnects: NonNegInt = 0
+    ip_retransmits: NonNegInt | None = Field(
+        default=None, description="VISCA over IP: datagrams resent after a late reply (else null)"
+    )
+    ip_given_up: NonNegInt | None = Field(
+        default=None, description="VISCA over IP: datagrams abandoned after every retransmission"
+    )
+    ip_sequence_errors: NonNegInt | None = Field(
+        default=None, description="VISCA over IP: sequence-number errors the camera reported"
+    )
+    ip_resets: NonNegInt | None = Field(
+        default=None, description="VISCA over IP: RESETs of the sequence (connects included)"
+    )
 
 
 class VideoHealth(BaseModel):

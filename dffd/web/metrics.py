@@ -124,6 +124,16 @@ class _SnapshotCollector(Collector):
             counter("dffd_link_timeouts", "VISCA commands that timed out", ln.timeouts)
             counter("dffd_link_reconnects", "VISCA link reconnects", ln.reconnects)
             counter("dffd_link_replies", "VISCA replies received", ln.replies)
+            if ln.ip_retransmits is not None:
+                counter(
+                    "dffd_link_ip_retransmits", "VISCA-over-IP datagrams resent", ln.ip_retransmits
+                )
+                counter(
+                    "dffd_link_ip_sequence_errors",
+                    "VISCA-over-IP sequence errors reported by the camera",
+                    ln.ip_sequence_errors or 0,
+                )
+                counter("dffd_link_ip_resets", "VISCA-over-IP sequence RESETs", ln.ip_resets or 0)
             gauge(
                 "dffd_link_last_reply_age_seconds",
                 "Time since the last VISCA reply",

@@ -21,7 +21,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable, Coroutine
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Protocol, TypeVar, cast
 
 from drivers.visca.codec import (
@@ -41,6 +41,7 @@ from drivers.visca.errors import (
     ViscaError,
     ViscaTimeoutError,
 )
+from drivers.visca.ip import IpStats
 from drivers.visca.session import (
     ACK_TIMEOUT_S,
     BROADCAST_TIMEOUT_S,
@@ -161,6 +162,7 @@ class LinkHealth:
     port_failures: int
     last_reply_monotonic: float | None
     chain_length: int | None
+    ip: IpStats | None = None  # VISCA over IP channel counters (None on serial and TCP)
 
 
 AnswerT_co = TypeVar("AnswerT_co", bound=InquiryData, covariant=True)
@@ -275,6 +277,7 @@ class ViscaLink:
         self.timeouts = timeouts or LinkTimeouts()
         self._transport_factory = transport_factory or _factory_for(url, baudrate, port_factory)
         self._transport: Transport | None = None
+        self._ip_totals: IpStats | None = None  # IP counters of closed connections
         self._generation = 0  # bumps on every (re)open: callbacks of an old transport are void
         self._session = ViscaSession(self.timeouts, name=url)
         self._session.connection_lost(time.monotonic(), LinkDownError(f"{url} not open yet"))
@@ -395,7 +398,15 @@ class ViscaLink:
             port_failures=self._port_failures,
             last_reply_monotonic=s.last_reply_t,
             chain_length=self.chain_length,
+            ip=self._ip_stats(),
         )
+
+    def _ip_stats(self) -> IpStats | None:
+        """The VISCA-over-IP counters over every connection so far (None: never over IP)."""
+        channel = getattr(self._transport, "channel", None)
+        if channel is None:
+            return self._ip_totals
+        return _add_ip_stats(self._ip_totals or IpStats(), channel.stats)
 
     def running(self, address: int) -> dict[int, Command]:
         """Commands in flight for ``address`` by socket (as the session believes)."""
@@ -641,6 +652,9 @@ class ViscaLink:
         self._transport = None
         self._generation += 1
         if transport is not None:
+            channel = getattr(transport, "channel", None)
+            if channel is not None:
+                self._ip_totals = _add_ip_stats(self._ip_totals or IpStats(), channel.stats)
             with contextlib.suppress(Exception):
                 await transport.close()
 
@@ -878,3 +892,8 @@ def _resolve(fut: asyncio.Future[Any], value: Any) -> None:
 def _fail(fut: asyncio.Future[Any], error: BaseException) -> None:
     if not fut.done():
         fut.set_exception(error)
+
+
+def _add_ip_stats(a: IpStats, b: IpStats) -> IpStats:
+    """Field-wise sum of two channels' counters."""
+    return IpStats(**{f.name: getattr(a, f.name) + getattr(b, f.name) for f in fields(IpStats)})
