@@ -241,3 +241,59 @@ def test_stream_config_needs_a_url_and_a_real_camera() -> None:
          "capture": {"source": "stream", "url": "x.avi", "latency_s": 0.12}}
     )  # fmt: skip
     assert cfg.capture.latency == pytest.approx(0.12)
+
+
+async def test_sim_camera_cli_serves_visca_ip_and_mjpeg_video() -> None:
+    # `dffd sim-camera --listen udp://… --video http://…`: the control address and the video URL
+    # on its first two stdout lines; the frames show what the VISCA commands do (a pan moves
+    # the target across the image).
+    import sys
+
+    from drivers.visca.camera import Camera
+    from drivers.visca.link import ViscaLink
+
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "dffd", "sim-camera", "--listen", "udp://127.0.0.1:0",
+        "--video", "http://127.0.0.1:0",
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        control = (await asyncio.wait_for(proc.stdout.readline(), 20)).decode()
+        video = (await asyncio.wait_for(proc.stdout.readline(), 20)).decode()
+        assert control.startswith("visca-ip://127.0.0.1:")
+        assert video.startswith("http://127.0.0.1:")
+        assert video.strip().endswith("/video.mjpg")
+        source = StreamFrameSource(_settings(video.strip()))
+        await source.start()
+        try:
+            async with ViscaLink(control.strip()) as link:
+                camera = Camera(link, 1)
+                await camera.initialize()
+                before = await asyncio.wait_for(source.next_frame(), FRAME_TIMEOUT_S)
+                await camera.pan_tilt_absolute(0.3, 0.0)
+                await _drain_for(source, 0.3)
+                after = await asyncio.wait_for(source.next_frame(), FRAME_TIMEOUT_S)
+        finally:
+            await source.close()
+    finally:
+        if proc.returncode is None:
+            proc.terminate()
+        await asyncio.wait_for(proc.wait(), 10)
+    assert proc.returncode == 0
+    # Panning right moves the (bright) target left in the image.
+    assert _bright_centroid_x(after.image) < _bright_centroid_x(before.image) - 5
+
+
+async def _drain_for(source: StreamFrameSource, seconds: float) -> None:
+    """Skip the frames of the next ``seconds`` (those exposed during the move)."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + seconds
+    while loop.time() < end:
+        await asyncio.wait_for(source.next_frame(), FRAME_TIMEOUT_S)
+
+
+def _bright_centroid_x(image: np.ndarray) -> float:
+    _ys, xs = np.nonzero(image > 120)
+    assert xs.size > 0
+    return float(xs.mean())

@@ -2,17 +2,20 @@
 
 Prints what it serves as the first line of stdout — the device path (the ``--link`` symlink, else
 the pty slave), ``tcp://HOST:PORT`` for ``--listen tcp://…`` (raw VISCA) or
-``visca-ip://HOST:PORT`` for ``--listen udp://…`` (VISCA over IP) — serves until SIGTERM or
-SIGINT, then exits 0.
+``visca-ip://HOST:PORT`` for ``--listen udp://…`` (VISCA over IP) — and, with ``--video
+http://HOST:PORT``, the URL of its rendered frames as MJPEG over HTTP as the second line; serves
+until SIGTERM or SIGINT, then exits 0.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import signal
 import sys
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 from drivers.sim.device import DeviceConfig
@@ -21,6 +24,9 @@ from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.models import SIM_MODELS, sim_model
 from drivers.sim.net_server import SimTcpServer
 from drivers.sim.server import SimCameraServer
+
+if TYPE_CHECKING:
+    from drivers.sim.rig import SimCamera
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +43,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         default="pty",
         help="pty (default), tcp://127.0.0.1:PORT (raw VISCA over TCP) or udp://127.0.0.1:PORT "
         "(VISCA over IP; prints visca-ip://…); port 0: any free one",
+    )
+    parser.add_argument(
+        "--video",
+        metavar="URL",
+        default=None,
+        help="also serve the rendered frames as MJPEG over HTTP on http://HOST:PORT (port 0: any "
+        "free one); the video URL is printed as the second stdout line",
     )
     parser.add_argument(
         "--link",
@@ -116,10 +129,25 @@ def run(args: argparse.Namespace) -> int:
             )
             return EXIT_USAGE
         tcp, scheme = (parts.hostname, port), parts.scheme
+    video: tuple[str, int] | None = None
+    if args.video is not None:
+        parts = urlsplit(args.video.strip())
+        try:
+            video_port = parts.port
+        except ValueError:
+            video_port = None
+        if parts.scheme != "http" or not parts.hostname or video_port is None:
+            print(
+                f"dffd sim-camera: --video {args.video!r}: use http://HOST:PORT (port 0: any "
+                "free one)",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
+        video = (parts.hostname, video_port)
     try:
         if tcp is not None:
-            return asyncio.run(_serve_net(scheme, config, faults, *tcp))
-        return asyncio.run(_serve(config, faults, args.link))
+            return asyncio.run(_serve_net(scheme, config, faults, *tcp, video=video))
+        return asyncio.run(_serve(config, faults, args.link, video=video))
     except OSError as exc:
         print(
             f"dffd sim-camera: cannot serve the pty ({exc}); check --link is a writable path",
@@ -128,29 +156,69 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_FAILURE
 
 
-async def _serve(config: DeviceConfig, faults: Faults, link: str | None) -> int:
+async def _serve(
+    config: DeviceConfig, faults: Faults, link: str | None, *, video: tuple[str, int] | None
+) -> int:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, stop.set)
-    async with SimCameraServer(config, faults=faults, link_path=link) as server:
+    async with contextlib.AsyncExitStack() as stack:
+        rig = _rig(config) if video is not None else None
+        state = rig.state if rig is not None else None
+        server = SimCameraServer(config, faults=faults, link_path=link, state=state)
+        await stack.enter_async_context(server)
         sys.stdout.write(f"{server.path}\n")
+        await _serve_video(stack, rig, video)
         sys.stdout.flush()
         logger.info("sim camera %s on %s, faults: %s", config, server.path, faults.spec)
         await stop.wait()
     return EXIT_OK
 
 
+def _rig(config: DeviceConfig) -> SimCamera:
+    """The reference simulated camera (renderer and world) driven by the VISCA device."""
+    # Imported here: the renderer pulls in numpy and OpenCV, which `--help` must not load.
+    from drivers.sim.config import load_sim_camera_config
+    from drivers.sim.resources import reference_camera_file
+    from drivers.sim.rig import build_sim_camera
+
+    return build_sim_camera(load_sim_camera_config(reference_camera_file()), device=config)
+
+
+async def _serve_video(
+    stack: contextlib.AsyncExitStack, rig: SimCamera | None, video: tuple[str, int] | None
+) -> None:
+    if rig is None or video is None:
+        return
+    from drivers.sim.video_server import SimVideoServer
+
+    server = SimVideoServer(rig.source, host=video[0], port=video[1])
+    await stack.enter_async_context(server)
+    sys.stdout.write(f"{server.url}\n")
+
+
 async def _serve_net(
-    scheme: str, config: DeviceConfig, faults: Faults, host: str, port: int
+    scheme: str,
+    config: DeviceConfig,
+    faults: Faults,
+    host: str,
+    port: int,
+    *,
+    video: tuple[str, int] | None,
 ) -> int:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, stop.set)
     server_cls = SimUdpServer if scheme == "udp" else SimTcpServer
-    async with server_cls(config, host=host, port=port, faults=faults) as server:
+    async with contextlib.AsyncExitStack() as stack:
+        rig = _rig(config) if video is not None else None
+        state = rig.state if rig is not None else None
+        server = server_cls(config, host=host, port=port, faults=faults, state=state)
+        await stack.enter_async_context(server)
         sys.stdout.write(f"{server.url}\n")
+        await _serve_video(stack, rig, video)
         sys.stdout.flush()
         logger.info("sim camera %s on %s, faults: %s", config, server.url, faults.spec)
         await stop.wait()
