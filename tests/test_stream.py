@@ -297,3 +297,13 @@ def _bright_centroid_x(image: np.ndarray) -> float:
     _ys, xs = np.nonzero(image > 120)
     assert xs.size > 0
     return float(xs.mean())
+
+
+def test_the_ip_camera_example_config_loads() -> None:
+    from dffd.config import load_config
+
+    config = load_config(Path(__file__).resolve().parent.parent / "config" / "lab-ip-camera.toml")
+    assert config.camera.port == "visca-ip://192.168.0.100:52381"
+    assert config.camera.model == "srg-300"
+    assert config.capture.source == "stream"
+    assert config.capture.latency == pytest.approx(0.12)
