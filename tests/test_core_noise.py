@@ -13,6 +13,7 @@ from dffd.core.filters import CF1, CF2, DepthKF, KFNoise, LPVGains, LPVObserver,
 from dffd.core.noise import (
     InnovationScale,
     NoiseAdaptConfig,
+    SlowErrors,
     TimeOffset,
     shared_frame_correlation,
     student_factor,
@@ -136,3 +137,20 @@ def test_propagated_sigma_matches_monte_carlo_for_every_estimator() -> None:
     for name, e in errs.items():
         spread = float(np.std(e))
         assert spread == pytest.approx(predicted[name], rel=0.15), name
+
+
+def test_slow_errors_factor_sees_errors_that_do_not_average_out() -> None:
+    """White size-measurement errors: the filters' variance model holds (factor ~1); errors
+    that wander slowly (AR(1), coefficient 0.9): an average of many has ~10x the variance the
+    white model predicts, and the factor says so."""
+    rng = np.random.default_rng(8)
+    cfg = NoiseAdaptConfig(window_bursts=400.0, slow_error_max=100.0)
+    white, slow = SlowErrors(cfg), SlowErrors(cfg)
+    e = 0.0
+    for _ in range(400):
+        white.update(math.log(0.04) + rng.normal(0.0, 0.003), 0.003, 0.0)
+        e = 0.9 * e + rng.normal(0.0, 0.003 * math.sqrt(1 - 0.81))
+        slow.update(math.log(0.04) + e, 0.003, 0.0)
+    assert white.factor == pytest.approx(1.0, abs=0.3)
+    # Bartlett-weighted long-run variance over 10 lags of an AR(1) with φ = 0.9: ~6-7x γ₀
+    assert 4.0 < slow.factor < 12.0

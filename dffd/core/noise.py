@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections import deque
 from dataclasses import dataclass
 
 from scipy import stats
@@ -66,6 +67,10 @@ class NoiseAdaptConfig:
     # size bias for a lean and pinned τ̂ at −0.1 s (approach), and on the reference optics it
     # stayed within ±0.02 s of the exposure timing's 0 (docs/estimation.md §9).
     adapt_time_offset: bool = False
+    # Slow measurement errors (SlowErrors): autocovariance lags of the long-run variance (~5 s of
+    # rolling bursts, the scale the filters average over) and the bound of the factor.
+    slow_error_lags: int = 10
+    slow_error_max: float = 25.0
 
 
 def student_factor(dof: float) -> float:
@@ -121,6 +126,45 @@ class InnovationScale:
         scale = self.scale * (1.0 - d + d * q)
         self.scale = min(max(scale, c.scale_min), c.scale_max)
         return self.scale
+
+
+class SlowErrors:
+    """How much slower than modelled the measurement errors decorrelate: a filter's average of
+    N measurements has a variance the long-run variance of their errors sets, not γ₀/N.
+
+    The size measurements ``x_k = ln(z_m s(t_b))`` equal ``ln R`` plus measurement error whatever
+    the target does (the size invariant), so their normalised residuals about the window's
+    weighted mean, ``r_k = (x_k − m)/σ_k``, sample the errors' autocovariance γ_j. The ratio of the
+    long-run variance (Bartlett weights up to ``lags``) to the one the filters assume (MA(1) with
+    the shared-frame correlation ``c``) is the factor by which every filtered variance is
+    underestimated: ``ι = max(1, LRV / (γ₀ (1 + 2c w₁)))``, bounded.
+    """
+
+    def __init__(self, config: NoiseAdaptConfig) -> None:
+        self.config = config
+        self._x: deque[tuple[float, float]] = deque(maxlen=int(config.window_bursts))
+        self.factor = 1.0
+
+    def update(self, log_size: float, sigma_rel: float, corr: float) -> float:
+        """One size measurement (ln, relative σ) and the modelled lag-1 correlation; returns ι."""
+        c = self.config
+        if not (sigma_rel > 0 and math.isfinite(log_size)):
+            return self.factor
+        self._x.append((log_size, sigma_rel))
+        lags = c.slow_error_lags
+        n = len(self._x)
+        if n < 3 * (lags + 1):
+            return self.factor
+        w_sum = sum(1.0 / (s * s) for _, s in self._x)
+        mean = sum(x / (s * s) for x, s in self._x) / w_sum
+        r = [(x - mean) / s for x, s in self._x]
+        gamma = [sum(r[k] * r[k - j] for k in range(j, n)) / n for j in range(lags + 1)]
+        if gamma[0] <= 0:
+            return self.factor
+        lrv = gamma[0] + 2.0 * sum((1.0 - j / (lags + 1)) * gamma[j] for j in range(1, lags + 1))
+        model = gamma[0] * (1.0 + 2.0 * corr * (1.0 - 1.0 / (lags + 1)))
+        self.factor = min(max(lrv / model, 1.0), c.slow_error_max)
+        return self.factor
 
 
 class TimeOffset:

@@ -21,6 +21,7 @@ and the time offset from the Kalman filter's innovations (:mod:`dffd.core.noise`
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
@@ -29,6 +30,7 @@ from dffd.core.filters import KFNoise, LPVGains, Mat2, Vec2, exp_input2_floats
 from dffd.core.noise import (
     InnovationScale,
     NoiseAdaptConfig,
+    SlowErrors,
     TimeOffset,
     shared_frame_correlation,
 )
@@ -138,9 +140,13 @@ class Uncertainty:
         self.adapt = adapt
         # λ: true/stated measurement variance, from consecutive size measurements (no dynamics)
         self.scale = InnovationScale(adapt)
-        # κ²: the KF's innovations against their predicted variance (model mismatch of any kind)
-        self.consistency = InnovationScale(adapt)
+        # κ²: the KF's innovations against their predicted variance (model mismatch of any kind);
+        # never below 1: innovations smaller than predicted are what slowly varying measurement
+        # errors give (the filter follows them), not a sign of a smaller error (on paper-circle
+        # κ² fell to 0.25 while the error was 3-5x the σ; docs/estimation.md §9)
+        self.consistency = InnovationScale(replace(adapt, scale_min=1.0))
         self.offset = TimeOffset(adapt)
+        self.slow = SlowErrors(adapt)
         self._last_size: tuple[float, float, tuple[int, ...]] | None = None
         self._cf1_k = cf1_k
         self._cf2 = cf2_gains
@@ -171,14 +177,14 @@ class Uncertainty:
         err = self.errors.get(name)
         if err is None or not self.started:
             return None
-        return math.sqrt(err.var_z * self.consistency.scale) * self.factor
+        return math.sqrt(err.var_z * self.consistency.scale * self.slow.factor) * self.factor
 
     def sigmas(self, depth: dict[str, float | None]) -> dict[str, float | None]:
         """Published σ of every estimator with a value in ``depth`` (None for the others)."""
         if not self.started:
             return dict.fromkeys(depth)
         f = self.factor
-        kappa = math.sqrt(self.consistency.scale)
+        kappa = math.sqrt(self.consistency.scale * self.slow.factor)
         out: dict[str, float | None] = {}
         for name, value in depth.items():
             err = self.errors.get(name)
@@ -242,6 +248,8 @@ class Uncertainty:
         whatever the target does, so the difference is measurement noise only) and τ̂
         (returned)."""
         last, self._last_size = self._last_size, (log_size, rel_sigma_fit, frames)
+        corr_now = 0.0 if last is None else shared_frame_correlation(last[2], frames)
+        self.slow.update(log_size, rel_sigma_fit, corr_now)
         if last is not None:
             prev, prev_sigma, prev_frames = last
             corr = shared_frame_correlation(prev_frames, frames)
