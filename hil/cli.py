@@ -100,6 +100,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
     bench.add_argument("--quick", action="store_true", help="shorter runs (smoke test)")
+    bench.add_argument(
+        "--readme",
+        type=Path,
+        nargs="?",
+        const=Path("README.md"),
+        default=None,
+        help="only rewrite the README's performance table from OUT/bench.json (default README.md)",
+    )
 
     soak = sub.add_parser(
         "soak", help="long run of the live daemon: RSS slope, CPU, latency and rates over time"
@@ -110,6 +118,11 @@ def build_parser() -> argparse.ArgumentParser:
     soak.add_argument("--scenario", default="static", help="the daemon's built-in world")
     soak.add_argument("--window", type=float, default=0.0, help="seconds per window (0: auto)")
     soak.add_argument("--out", type=Path, default=DEFAULT_OUT / "soak", help="output directory")
+    soak.add_argument(
+        "--fresh-kernel-cache",
+        action="store_true",
+        help="start with an empty NUMBA_CACHE_DIR (a fresh install without the kernel warm-up)",
+    )
 
     table = sub.add_parser("table", help="print reports as the README's markdown results table")
     table.add_argument("reports", type=Path, nargs="+", help="report.json files or directories")
@@ -137,14 +150,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(markdown_table([load_report(p) for p in args.reports]))
             return EXIT_OK
         if args.command == "bench":
-            from hil.benchmarks import run_bench
+            from hil.benchmarks import run_bench, write_readme
 
+            if args.readme is not None:
+                return write_readme(args.out / "bench.json", args.readme)
             return run_bench(args.out, quick=args.quick)
         if args.command == "soak":
             from hil.soak import run_soak
 
             seconds = args.seconds if args.seconds is not None else 60.0 * args.minutes
-            return run_soak(seconds, args.out, args.scenario, args.window)
+            return run_soak(
+                seconds,
+                args.out,
+                args.scenario,
+                args.window,
+                fresh_kernel_cache=args.fresh_kernel_cache,
+            )
         return _run(args)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED

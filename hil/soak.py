@@ -5,11 +5,18 @@ loopback port as :mod:`hil.realtime` starts it), subscribes to ``…/estimate`` 
 ``…/measurement`` like a user and samples the daemon's ``/proc`` once a second. Reports:
 
 * start → first estimate (process start to the first ``…/estimate`` at the subscriber);
-* RSS slope in MiB/hour (least squares over the samples after ``WARMUP_S``) and min/max;
-* CPU % of one core (utime + stime over the run after the first estimate);
+* RSS slope in MiB/hour (least squares over the last half of the run, and not before
+  ``WARMUP_S``) and min/max;
+* CPU % of one core (utime + stime over the run after the first estimate), and the service's
+  share: minus the simulator's render threads (``asyncio_*``, the default executor its frame
+  source renders in; the simulated VISCA device on the event loop stays in, a small part), and
+  each thread's share (the daemon runs under :mod:`hil.threadnames` so the kernel knows them);
 * exposure → subscriber latency percentiles (reception minus the payload's ``t_mono``) and the
   daemon's share (minus the simulated capture chain's delivery lag);
 * per window of ``--window`` seconds: estimate and measurement rates, latency p50/p99, CPU %, RSS.
+
+``fresh_kernel_cache`` starts the daemon with an empty ``NUMBA_CACHE_DIR`` (a fresh install that
+skipped ``python -m dffd.warmup``): the start → first estimate then includes the kernels' compile.
 
 Writes ``soak.json`` and ``soak.png`` into ``--out``. Figures only, no verdicts asserted.
 """
@@ -30,9 +37,8 @@ from typing import Any
 
 import numpy as np
 
-# The bench's own helpers (private to their modules today; one place to start a broker, read
-# /proc and know the simulator's delivery lag).
-from hil.benchmarks import _sim_delivery_lag_ms as sim_delivery_lag_ms
+# The bench's own helpers (private to their module today; one place to start a broker and read
+# /proc).
 from hil.realtime import (
     DAEMON_START_TIMEOUT_S,
     MQTT_CONNECT_TIMEOUT_S,
@@ -48,12 +54,23 @@ from hil.realtime import _stop as stop_process
 SAMPLE_PERIOD_S = 1.0
 # Samples before this are start-up (imports, first acquisition, first bursts): not in the slope.
 WARMUP_S = 10.0
+# The slope is fitted over the last part of the run only: RSS settles over the first minutes
+# (allocator arenas, bounded histories filling: +11 MiB in the first 2 minutes, measured), and
+# that settling is not growth.
+SLOPE_FRACTION = 0.5
+# With an empty kernel cache the daemon compiles every kernel before its first estimate: ~25 s of
+# CPU, several times that on a 2-core machine shared with other work.
+FRESH_START_TIMEOUT_S = 240.0
 # The broker connection is retried this often while the daemon starts.
 CONNECT_RETRY_S = 0.2
 DEFAULT_WINDOW_S = 60.0
 # Latency samples kept (30 estimates/s for 24 h): bounds this process's own memory.
 MAX_LATENCY_SAMPLES = 30 * 86_400
 MIB = 1024.0
+# The simulated frame source renders in asyncio's default executor (asyncio.to_thread), whose
+# threads are "asyncio_0", "asyncio_1", … (kernel names set by hil.threadnames); the daemon
+# itself uses that executor only at start and stop.
+SIM_THREAD_PREFIX = "asyncio_"
 
 
 @dataclass
@@ -65,20 +82,29 @@ class _Trace:
     estimates: list[tuple[float, float]] = field(default_factory=list)  # (received, latency s)
     measurements: list[float] = field(default_factory=list)  # received
     samples: list[tuple[float, float, int]] = field(default_factory=list)  # (t, cpu s, rss KiB)
+    threads: list[dict[str, float]] = field(default_factory=list)  # thread name → CPU s, per sample
 
 
-def run_soak(seconds: float, out_dir: Path, scenario: str = "static", window_s: float = 0) -> int:
+def run_soak(
+    seconds: float,
+    out_dir: Path,
+    scenario: str = "static",
+    window_s: float = 0,
+    *,
+    fresh_kernel_cache: bool = False,
+) -> int:
     """Run the soak for ``seconds`` after the first estimate; write soak.json and soak.png."""
     window = window_s if window_s > 0 else min(DEFAULT_WINDOW_S, max(seconds / 10.0, 1.0))
     out_dir.mkdir(parents=True, exist_ok=True)
     try:
-        trace = asyncio.run(_soak(seconds, scenario, out_dir))
+        trace = asyncio.run(_soak(seconds, scenario, out_dir, fresh_kernel_cache))
     except (RuntimeError, TimeoutError) as exc:
         why = str(exc) or "no estimate in time"
         print(f"hil soak: {why}; see {out_dir / 'daemon.log'}", file=sys.stderr)
         return 1
     result = summarize(trace, seconds, window, sim_delivery_lag_ms())
     result["scenario"] = scenario
+    result["fresh_kernel_cache"] = fresh_kernel_cache
     (out_dir / "soak.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     plot(result, out_dir / "soak.png")
     print(format_summary(result))
@@ -91,7 +117,11 @@ def summarize(
 ) -> dict[str, Any]:
     """The soak.json object: totals, RSS slope, latency percentiles and per-window series."""
     t0 = trace.first_estimate if trace.first_estimate is not None else trace.started
-    samples = [(t - t0, cpu, rss / MIB) for t, cpu, rss in trace.samples if t >= t0]
+    kept = [i for i, (t, _, _) in enumerate(trace.samples) if t >= t0]
+    samples = [
+        (trace.samples[i][0] - t0, trace.samples[i][1], trace.samples[i][2] / MIB) for i in kept
+    ]
+    threads = [trace.threads[i] for i in kept if i < len(trace.threads)]
     lat = np.array([lat for _, lat in trace.estimates]) * 1e3
     last = max([r for r, _ in trace.estimates] + [t for t, _, _ in trace.samples], default=t0)
     run_s = max(last - t0, 0.0)
@@ -100,7 +130,16 @@ def summarize(
         if len(samples) > 1 and samples[-1][0] > samples[0][0]
         else None
     )
-    steady = [(t, rss) for t, _, rss in samples if t >= WARMUP_S]
+    shares = (
+        thread_shares(threads[0], threads[-1], samples[-1][0] - samples[0][0])
+        if len(threads) == len(samples) and len(threads) > 1
+        else {}
+    )
+    sim_pct = (
+        sum(v for k, v in shares.items() if k.startswith(SIM_THREAD_PREFIX)) if shares else None
+    )
+    slope_from = max(WARMUP_S, (1.0 - SLOPE_FRACTION) * run_s)
+    steady = [(t, rss) for t, _, rss in samples if t >= slope_from]
     slope = _slope_per_hour(steady)
     windows = []
     for start in np.arange(0.0, max(run_s, 0.0), window_s):
@@ -137,11 +176,16 @@ def summarize(
         "measurements": len(trace.measurements),
         "estimate_hz": len(trace.estimates) / run_s if run_s > 0 else None,
         "cpu_pct_one_core": cpu_pct,
+        "simulator_cpu_pct_one_core": sim_pct,
+        "service_cpu_pct_one_core": None
+        if cpu_pct is None or sim_pct is None
+        else cpu_pct - sim_pct,
+        "thread_cpu_pct_one_core": shares,
         "rss_mib": {
             "min": min(rss_all, default=None),
             "max": max(rss_all, default=None),
             "slope_mib_per_hour": slope,
-            "slope_from_s": WARMUP_S,
+            "slope_from_s": slope_from,
             "samples": len(steady),
         },
         "latency_ms": {
@@ -170,7 +214,8 @@ def format_summary(result: dict[str, Any]) -> str:
         f"({f(result['estimate_hz'])}/s), {result['measurements']} measurements"
     )
     cpu = (
-        f"CPU {f(result['cpu_pct_one_core'])} % of one core; RSS {f(rss['min'])}-"
+        f"CPU {f(result['cpu_pct_one_core'])} % of one core (service without the simulator "
+        f"{f(result.get('service_cpu_pct_one_core'))} %); RSS {f(rss['min'])}-"
         f"{f(rss['max'])} MiB, slope {f(rss['slope_mib_per_hour'], '.2f')} MiB/h "
         f"(least squares after {rss['slope_from_s']:.0f} s, {rss['samples']} samples)"
     )
@@ -197,7 +242,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     ax.plot(rss[:, 0], rss[:, 1], lw=1, label="RSS")
     slope = result["rss_mib"]["slope_mib_per_hour"]
     if slope is not None and len(rss):
-        steady = rss[rss[:, 0] >= WARMUP_S]
+        steady = rss[rss[:, 0] >= result["rss_mib"]["slope_from_s"]]
         mid_t, mid_r = steady[:, 0].mean(), steady[:, 1].mean()
         ax.plot(
             steady[:, 0],
@@ -243,7 +288,7 @@ def _slope_per_hour(points: list[tuple[float, float]]) -> float | None:
     return slope * 3600.0 if math.isfinite(slope) else None
 
 
-async def _soak(seconds: float, scenario: str, out_dir: Path) -> _Trace:
+async def _soak(seconds: float, scenario: str, out_dir: Path, fresh_kernel_cache: bool) -> _Trace:
     work = Path(tempfile.mkdtemp(prefix="hil-soak-"))
     port = free_port()
     broker = start_mosquitto(work, port)
@@ -260,11 +305,13 @@ async def _soak(seconds: float, scenario: str, out_dir: Path) -> _Trace:
             "DFFD_SIM__SCENARIO": scenario,
         }
     )
+    if fresh_kernel_cache:
+        env["NUMBA_CACHE_DIR"] = str(work / "numba-cache")
     trace = _Trace(started=time.monotonic())
     with (out_dir / "daemon.log").open("wb") as log:
         # The daemon is this repository's own CLI run with this interpreter.
         daemon = subprocess.Popen(  # noqa: ASYNC220 - started once, stopped in finally
-            [sys.executable, "-m", "dffd", "run", "--no-console"],
+            [sys.executable, "-m", "hil.threadnames", "dffd", "run", "--no-console"],
             cwd=REPO_ROOT,
             env=env,
             stdout=log,
@@ -273,7 +320,8 @@ async def _soak(seconds: float, scenario: str, out_dir: Path) -> _Trace:
         try:
             async with asyncio.TaskGroup() as tg:
                 sampler = tg.create_task(_sample(daemon.pid, trace))
-                await _subscribe(daemon, port, trace, seconds)
+                start_s = FRESH_START_TIMEOUT_S if fresh_kernel_cache else DAEMON_START_TIMEOUT_S
+                await _subscribe(daemon, port, trace, seconds, start_s)
                 sampler.cancel()
         finally:
             stop_process(daemon)
@@ -285,16 +333,56 @@ async def _soak(seconds: float, scenario: str, out_dir: Path) -> _Trace:
 async def _sample(pid: int, trace: _Trace) -> None:
     while True:
         user, system = cpu_times(pid)
+        trace.threads.append(thread_cpu_s(pid))
         trace.samples.append((time.monotonic(), user + system, rss_kib(pid)))
         await asyncio.sleep(SAMPLE_PERIOD_S)
 
 
+def sim_delivery_lag_ms() -> float:
+    """Mid-exposure → delivery of the reference simulated camera: exposure/2 + its latency."""
+    from drivers.sim.config import load_sim_camera_config
+    from drivers.sim.resources import reference_camera_file
+
+    cap = load_sim_camera_config(reference_camera_file()).capture
+    return 1e3 * (cap.exposure_s / 2.0 + cap.capture_latency_frames / cap.fps)
+
+
+def thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds (user + system) of each live thread of ``pid``, summed by kernel name."""
+    out: dict[str, float] = {}
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except OSError:
+        return out
+    tick = os.sysconf("SC_CLK_TCK")
+    for task in tasks:
+        try:
+            head, tail = (task / "stat").read_text().rsplit(")", 1)
+        except OSError:  # the thread ended between the listing and the read
+            continue
+        name = head.split("(", 1)[1]
+        fields = tail.split()
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+def thread_shares(
+    first: dict[str, float], last: dict[str, float], span_s: float
+) -> dict[str, float]:
+    """CPU % of one core of each thread name between two :func:`thread_cpu_s` samples."""
+    if span_s <= 0:
+        return {}
+    return {
+        name: 100.0 * (cpu - first.get(name, 0.0)) / span_s for name, cpu in sorted(last.items())
+    }
+
+
 async def _subscribe(
-    daemon: subprocess.Popen[bytes], port: int, trace: _Trace, seconds: float
+    daemon: subprocess.Popen[bytes], port: int, trace: _Trace, seconds: float, start_s: float
 ) -> None:
     import aiomqtt
 
-    deadline = trace.started + DAEMON_START_TIMEOUT_S
+    deadline = trace.started + start_s
     while True:
         if daemon.poll() is not None:
             raise RuntimeError(f"the daemon exited with status {daemon.returncode}; see daemon.log")
@@ -302,7 +390,7 @@ async def _subscribe(
             async with aiomqtt.Client("127.0.0.1", port, timeout=MQTT_CONNECT_TIMEOUT_S) as client:
                 await client.subscribe("dffd/+/estimate")
                 await client.subscribe("dffd/+/measurement")
-                await _receive(client, trace, seconds)
+                await _receive(client, trace, seconds, start_s)
                 return
         except aiomqtt.MqttError:
             if time.monotonic() > deadline:
@@ -310,8 +398,8 @@ async def _subscribe(
             await asyncio.sleep(CONNECT_RETRY_S)
 
 
-async def _receive(client: Any, trace: _Trace, seconds: float) -> None:
-    async with asyncio.timeout(DAEMON_START_TIMEOUT_S + seconds + 10.0):
+async def _receive(client: Any, trace: _Trace, seconds: float, start_s: float) -> None:
+    async with asyncio.timeout(start_s + seconds + 10.0):
         async for message in client.messages:
             now = time.monotonic()
             if message.topic.value.endswith("/measurement"):

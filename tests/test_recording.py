@@ -11,7 +11,13 @@ import pytest
 
 from dffd.core.synthetic import synthetic_lens
 from dffd.core.types import FrameTag
-from dffd.recording import FrameRecord, RecordingError, RecordingReader, RecordingWriter
+from dffd.recording import (
+    FrameRecord,
+    PngEncoding,
+    RecordingError,
+    RecordingReader,
+    RecordingWriter,
+)
 from drivers.frames import Frame
 
 TAGS = [
@@ -24,10 +30,12 @@ TAGS = [
 ]
 
 
-def _write(path: Path, truth: bool = True, bgr: bool = False) -> list[Frame]:
+def _write(
+    path: Path, truth: bool = True, bgr: bool = False, png: PngEncoding = "fast"
+) -> list[Frame]:
     rng = np.random.default_rng(0)
     frames = []
-    with RecordingWriter(path, 30, (64, 48), synthetic_lens().to_meta()) as w:
+    with RecordingWriter(path, 30, (64, 48), synthetic_lens().to_meta(), png=png) as w:
         for i, tag in enumerate(TAGS):
             shape = (48, 64, 3) if bgr else (48, 64)
             f = Frame(i, 100.0 + i / 30, rng.integers(0, 256, shape, dtype=np.uint8))
@@ -36,9 +44,10 @@ def _write(path: Path, truth: bool = True, bgr: bool = False) -> list[Frame]:
     return frames
 
 
-@pytest.mark.parametrize("bgr", [False, True])
-def test_round_trip_is_lossless(tmp_path: Path, bgr: bool) -> None:
-    frames = _write(tmp_path / "run", bgr=bgr)
+@pytest.mark.parametrize(("bgr", "png"), [(False, "fast"), (True, "fast"), (False, "small")])
+def test_round_trip_is_lossless(tmp_path: Path, bgr: bool, png: PngEncoding) -> None:
+    frames = _write(tmp_path / "run", bgr=bgr, png=png)
+    assert (tmp_path / "run/frames/000000.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rec = RecordingReader(tmp_path / "run")
     assert rec.fps == 30
     assert rec.frame_size == (64, 48)
