@@ -12,9 +12,9 @@ two latencies are measured from the same subscriber with one clock (``time.monot
   :class:`~dffd.mqtt.publisher.Publisher`, which sends it.
 
 The difference is what dffd adds between "frame processed" and "message at a subscriber"; the
-estimator thread's per-frame CPU and the capture are not in it. Also reported: the event loop
-thread's CPU per message (payload build, serialisation, send, and the subscriber's receipt,
-which both modes share) from the thread's CPU clock.
+estimator thread's per-frame CPU and the capture are not in it. Also reported: the publishing
+event loop thread's CPU per message (payload build, serialisation, send) from the thread's CPU
+clock; the subscriber runs in a thread and event loop of its own.
 
     python -m hil.bench_publish [--messages 600] [--rate 30] [--out bench_publish.json]
 """
@@ -205,34 +205,66 @@ def _sample_payload_json() -> bytes:
 
 
 class _Subscriber:
-    """Subscribes to one topic; ``collect(n)`` returns n latencies (s) from ``t_mono``."""
+    """Subscribes to one topic in its own thread and event loop (so the publishing loop's CPU
+    clock counts only the publisher); ``collect(n)`` returns n latencies (s) from ``t_mono``."""
 
     def __init__(self, port: int, topic: str) -> None:
-        import aiomqtt
-
-        self.client = aiomqtt.Client("127.0.0.1", port)
+        self.port = port
         self.topic = topic
+        self._want = 0
+        self._ready = threading.Event()
+        self._start = threading.Event()
+        self._done = threading.Event()
+        self._latencies: list[float] = []
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._main, name="bench-subscriber", daemon=True)
 
     async def __aenter__(self) -> _Subscriber:
-        async with asyncio.timeout(CONNECT_TIMEOUT_S):
-            await self.client.__aenter__()
-            await self.client.subscribe(self.topic)
+        self._thread.start()
+        ready = await asyncio.to_thread(self._ready.wait, CONNECT_TIMEOUT_S)
+        if not ready or self._error is not None:
+            raise RuntimeError(f"subscriber did not connect: {self._error!r}")
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        await self.client.__aexit__(None, None, None)
+        self._done.set()
+        self._start.set()
+        await asyncio.to_thread(self._thread.join, DRAIN_TIMEOUT_S)
 
     async def collect(self, n: int) -> list[float]:
-        lat: list[float] = []
+        """Wait for ``n`` messages (sent by the caller meanwhile); their latencies."""
+        self._want = n
+        self._start.set()
         # The run itself lasts n/rate s; the bound covers it plus a loaded machine.
-        async with asyncio.timeout(CONNECT_TIMEOUT_S + DRAIN_TIMEOUT_S + n):
-            async for message in self.client.messages:
+        finished = await asyncio.to_thread(self._done.wait, CONNECT_TIMEOUT_S + DRAIN_TIMEOUT_S + n)
+        if not finished or self._error is not None:
+            raise RuntimeError(f"subscriber got {len(self._latencies)} of {n}: {self._error!r}")
+        return list(self._latencies)
+
+    def _main(self) -> None:
+        try:
+            asyncio.run(self._receive())
+        except BaseException as exc:  # noqa: BLE001 - reported to the caller
+            self._error = exc
+            self._ready.set()
+        finally:
+            self._done.set()
+
+    async def _receive(self) -> None:
+        import aiomqtt
+
+        async with aiomqtt.Client("127.0.0.1", self.port) as client:
+            await client.subscribe(self.topic)
+            self._ready.set()
+            await asyncio.to_thread(self._start.wait, CONNECT_TIMEOUT_S + DRAIN_TIMEOUT_S)
+            if self._done.is_set():
+                return
+            async for message in client.messages:
                 now = time.monotonic()
                 assert isinstance(message.payload, bytes)
-                lat.append(now - float(json.loads(message.payload)["t_mono"]))
-                if len(lat) >= n:
-                    break
-        return lat
+                self._latencies.append(now - float(json.loads(message.payload)["t_mono"]))
+                if len(self._latencies) >= self._want:
+                    return
 
 
 def _stats(latencies: Sequence[float]) -> dict[str, Any]:

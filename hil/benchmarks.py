@@ -8,10 +8,10 @@ same run**, its goal and whether it holds. The component benchmarks run in their
   and p99, against the tuned OpenCV full-frame baseline on the same frames (ratio ≥ 10×);
 * ``hil.bench_publish`` — core output → MQTT subscriber at 30 messages/s through the daemon's
   hand-off, payload conversion and publisher, against a bare MQTT client's floor;
-* ``hil soak`` (the live daemon on the simulator) — frame delivery → subscriber latency (the
-  service's own share) at the daemon's estimate rate, service CPU without the simulator's render
-  threads, RSS slope, start → first estimate with the kernels compiled ahead; a second, short
-  start with an empty kernel cache;
+* ``hil soak`` (the live daemon on the simulator) — frame delivered → subscriber latency (the
+  service's own share, matched per frame through ``…/sim/truth``) at the daemon's estimate
+  rate, service CPU without the simulator's render threads, RSS slope, start → first estimate
+  with the kernels compiled ahead; a second, short start with an empty kernel cache;
 * ``hil.bench_cli`` — every ``dffd … --help`` against a bare interpreter start;
 * ``hil.bench_visca`` and ``hil.bench_render`` — serial round trip, simulator render time;
 
@@ -293,9 +293,10 @@ def _replay(quick: bool) -> dict[str, Any]:
             run=rec, out=Path(tmp) / "est.jsonl", config=None, summary=None, plot=None,
             roi=None, settle=None, known_size=None, best=None,
         )  # fmt: skip
-        t0 = time.perf_counter()
+        t0, c0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
         code = replay_cli(args)
         replay_s = time.perf_counter() - t0
+        main_cpu, all_cpu = time.thread_time() - c0, time.process_time() - p0
     return {
         "what": f"{REPLAY_SCENARIO}/{REPLAY_CASE}, {duration:g} s lock-step recording",
         "frames": n,
@@ -305,6 +306,11 @@ def _replay(quick: bool) -> dict[str, Any]:
         "decode_one_thread_fps": n / decode_s if decode_s > 0 else None,
         "replay_s": replay_s,
         "replay_fps": n / replay_s if replay_s > 0 else None,
+        # The core runs in the calling thread, decoding in a pool beside it: on 2 idle cores the
+        # rate is bound by the calling thread's CPU per frame or by half the process's.
+        "main_thread_cpu_ms_per_frame": 1e3 * main_cpu / n if n else None,
+        "process_cpu_ms_per_frame": 1e3 * all_cpu / n if n else None,
+        "cpu_bound_fps_2_cores": n / max(main_cpu, all_cpu / 2.0) if n and all_cpu > 0 else None,
         "replay_exit": code,
         "png_encodings": encodings,
     }
@@ -342,7 +348,8 @@ def _decode_cost(rec: Path, records: list[Any]) -> dict[str, Any]:
 
 
 def _latency_figures(soak: dict[str, Any], publish: dict[str, Any]) -> list[dict[str, Any]]:
-    own = soak.get("latency_ms", {}).get("daemon_share", {})
+    lat = soak.get("latency_ms", {})
+    own = lat.get("delivered_to_subscriber", {})
     rate = soak.get("estimate_hz")
     floor = publish.get("floor", {})
     path = publish.get("path", {})
@@ -377,6 +384,18 @@ def _latency_figures(soak: dict[str, Any], publish: dict[str, Any]) -> list[dict
                 ok=None if value is None else value <= goal,
             )
         )
+    e2s = lat.get("exposure_to_subscriber", {}).get("p50")
+    out.append(
+        figure(
+            "exposure_p50",
+            "exposure → MQTT subscriber p50 (live daemon, simulated capture included)",
+            e2s,
+            "ms",
+            "reported (the capture's own latency is not the service's)",
+            baseline="nominal simulated capture lag: exposure/2 + 1 frame, ms",
+            baseline_value=lat.get("sim_delivery_lag_ms"),
+        )
+    )
     return out
 
 
@@ -483,7 +502,20 @@ def _service_figures(soak: dict[str, Any], fresh: dict[str, Any]) -> list[dict[s
 
 def _replay_figures(replay: dict[str, Any]) -> list[dict[str, Any]]:
     fps = replay.get("replay_fps")
+    bound = replay.get("cpu_bound_fps_2_cores")
     return [
+        figure(
+            "replay_cpu_bound_fps",
+            "dffd replay frames/s its CPU per frame allows on 2 idle cores (calling thread "
+            f"{_fmt(replay.get('main_thread_cpu_ms_per_frame'))} ms, process "
+            f"{_fmt(replay.get('process_cpu_ms_per_frame'))} ms per frame)",
+            bound,
+            "frames/s",
+            f"≥ {REPLAY_GOAL_FPS:g} frames/s (derived: the wall-time figure is the measurement)",
+            baseline="PNG decoding alone, one thread, frames/s",
+            baseline_value=replay.get("decode_one_thread_fps"),
+            ok=None if bound is None else bound >= REPLAY_GOAL_FPS,
+        ),
         figure(
             "replay_fps",
             f"dffd replay frames/s ({replay.get('frames', 0)} frames: decode, core, EST.jsonl)",
@@ -493,8 +525,12 @@ def _replay_figures(replay: dict[str, Any]) -> list[dict[str, Any]]:
             baseline="PNG decoding alone, one thread, frames/s",
             baseline_value=replay.get("decode_one_thread_fps"),
             ok=None if fps is None else fps >= REPLAY_GOAL_FPS,
-        )
+        ),
     ]
+
+
+def _fmt(value: float | None) -> str:
+    return "–" if value is None else f"{value:.2f}"
 
 
 def _help_figures(cli: dict[str, Any]) -> list[dict[str, Any]]:

@@ -11,8 +11,9 @@ loopback port as :mod:`hil.realtime` starts it), subscribes to ``…/estimate`` 
   share: minus the simulator's render threads (``asyncio_*``, the default executor its frame
   source renders in; the simulated VISCA device on the event loop stays in, a small part), and
   each thread's share (the daemon runs under :mod:`hil.threadnames` so the kernel knows them);
-* exposure → subscriber latency percentiles (reception minus the payload's ``t_mono``) and the
-  daemon's share (minus the simulated capture chain's delivery lag);
+* exposure → subscriber latency percentiles (reception minus the payload's ``t_mono``), that
+  minus the simulated capture chain's nominal delivery lag, and frame delivered → subscriber
+  (the service's own share, matched through ``…/sim/truth``; see :func:`_receive`);
 * per window of ``--window`` seconds: estimate and measurement rates, latency p50/p99, CPU %, RSS.
 
 ``fresh_kernel_cache`` starts the daemon with an empty ``NUMBA_CACHE_DIR`` (a fresh install that
@@ -66,6 +67,8 @@ CONNECT_RETRY_S = 0.2
 DEFAULT_WINDOW_S = 60.0
 # Latency samples kept (30 estimates/s for 24 h): bounds this process's own memory.
 MAX_LATENCY_SAMPLES = 30 * 86_400
+# Delivery times of the last frames kept to match estimates against: 10 s at 30 fps.
+TRUTHS_KEPT = 300
 MIB = 1024.0
 # The simulated frame source renders in asyncio's default executor (asyncio.to_thread), whose
 # threads are "asyncio_0", "asyncio_1", … (kernel names set by hil.threadnames); the daemon
@@ -83,6 +86,10 @@ class _Trace:
     measurements: list[float] = field(default_factory=list)  # received
     samples: list[tuple[float, float, int]] = field(default_factory=list)  # (t, cpu s, rss KiB)
     threads: list[dict[str, float]] = field(default_factory=list)  # thread name → CPU s, per sample
+    # Frame delivered to the daemon → estimate at this subscriber (s), from the …/sim/truth
+    # message of the same frame (see _receive).
+    delivered: list[float] = field(default_factory=list)
+    truths: dict[float, float] = field(default_factory=dict)  # frame t_mono → delivery wall time
 
 
 def run_soak(
@@ -123,6 +130,7 @@ def summarize(
     ]
     threads = [trace.threads[i] for i in kept if i < len(trace.threads)]
     lat = np.array([lat for _, lat in trace.estimates]) * 1e3
+    delivered = np.array(trace.delivered) * 1e3
     last = max([r for r, _ in trace.estimates] + [t for t, _, _ in trace.samples], default=t0)
     run_s = max(last - t0, 0.0)
     cpu_pct = (
@@ -191,6 +199,8 @@ def summarize(
         "latency_ms": {
             "exposure_to_subscriber": {p: _pct(lat, q) for p, q in _PCTS},
             "daemon_share": {p: _pct(lat - delivery_lag_ms, q) for p, q in _PCTS},
+            "delivered_to_subscriber": {p: _pct(delivered, q) for p, q in _PCTS},
+            "delivered_matched": len(trace.delivered),
             "sim_delivery_lag_ms": delivery_lag_ms,
         },
         "window_s": window_s,
@@ -219,10 +229,12 @@ def format_summary(result: dict[str, Any]) -> str:
         f"{f(rss['max'])} MiB, slope {f(rss['slope_mib_per_hour'], '.2f')} MiB/h "
         f"(least squares after {rss['slope_from_s']:.0f} s, {rss['samples']} samples)"
     )
+    dts = lat.get("delivered_to_subscriber", {})
     latency = (
         f"exposure -> subscriber p50 {f(e2s['p50'])} p99 {f(e2s['p99'])} ms; "
-        f"daemon's share p50 {f(own['p50'])} p99 {f(own['p99'])} ms "
-        f"(sim delivery lag {lat['sim_delivery_lag_ms']:.1f} ms)"
+        f"minus the nominal sim delivery lag ({lat['sim_delivery_lag_ms']:.1f} ms) p50 "
+        f"{f(own['p50'])} p99 {f(own['p99'])} ms; frame delivered -> subscriber p50 "
+        f"{f(dts.get('p50'))} p99 {f(dts.get('p99'))} ms"
     )
     return "\n".join([head, cpu, latency])
 
@@ -390,6 +402,7 @@ async def _subscribe(
             async with aiomqtt.Client("127.0.0.1", port, timeout=MQTT_CONNECT_TIMEOUT_S) as client:
                 await client.subscribe("dffd/+/estimate")
                 await client.subscribe("dffd/+/measurement")
+                await client.subscribe("dffd/+/sim/truth")
                 await _receive(client, trace, seconds, start_s)
                 return
         except aiomqtt.MqttError:
@@ -399,16 +412,34 @@ async def _subscribe(
 
 
 async def _receive(client: Any, trace: _Trace, seconds: float, start_s: float) -> None:
+    """Record estimates, measurements and the delivery time of each frame until done.
+
+    The daemon publishes a frame's ``…/sim/truth`` on its event loop right after handing the
+    frame to the estimator, stamped with the wall time then (``t``): that is when the frame was
+    delivered to the service (after the simulator rendered it). An estimate of the same frame
+    (same ``t_mono``) received at wall time ``now`` took ``now − t`` in the service, plus the
+    broker; the daemon and this process share the machine's clock.
+    """
     async with asyncio.timeout(start_s + seconds + 10.0):
         async for message in client.messages:
             now = time.monotonic()
-            if message.topic.value.endswith("/measurement"):
+            wall = time.time()
+            topic = message.topic.value
+            if topic.endswith("/measurement"):
                 trace.measurements.append(now)
                 continue
             payload = json.loads(bytes(message.payload))
+            if topic.endswith("/sim/truth"):
+                trace.truths[float(payload["t_mono"])] = float(payload["t"])
+                if len(trace.truths) > TRUTHS_KEPT:
+                    del trace.truths[next(iter(trace.truths))]
+                continue
             if trace.first_estimate is None:
                 trace.first_estimate = now
             if not payload.get("replayed") and len(trace.estimates) < MAX_LATENCY_SAMPLES:
                 trace.estimates.append((now, now - float(payload["t_mono"])))
+                delivered = trace.truths.get(float(payload["t_mono"]))
+                if delivered is not None:
+                    trace.delivered.append(wall - delivered)
             if now - trace.first_estimate >= seconds:
                 return

@@ -11,6 +11,7 @@ of each thread by that name. Bench-only: the product does not depend on it.
 from __future__ import annotations
 
 import ctypes
+import os
 import runpy
 import sys
 import threading
@@ -18,6 +19,7 @@ from typing import Any
 
 PR_SET_NAME = 15
 MAIN_THREAD_NAME = "dffd-loop"
+SWITCH_INTERVAL_ENV = "HIL_SWITCH_INTERVAL_S"
 
 
 def set_native_name(name: str) -> None:
@@ -46,6 +48,9 @@ def main() -> None:
         raise SystemExit("usage: python -m hil.threadnames MODULE [ARGS…]")
     install()
     set_native_name(MAIN_THREAD_NAME)
+    switch = os.environ.get(SWITCH_INTERVAL_ENV)
+    if switch:  # A/B runs of the GIL hand-over interval (Python's default: 5 ms)
+        sys.setswitchinterval(float(switch))
     module = sys.argv[1]
     sys.argv = [module, *sys.argv[2:]]
     runpy.run_module(module, run_name="__main__", alter_sys=True)

@@ -33,7 +33,7 @@ def _raw() -> dict:
     return {
         "soak": {
             "estimate_hz": 30.0,
-            "latency_ms": {"daemon_share": {"p50": 2.5, "p99": 9.0}},
+            "latency_ms": {"delivered_to_subscriber": {"p50": 2.5, "p99": 9.0}},
             "service_cpu_pct_one_core": 8.0,
             "cpu_pct_one_core": 20.0,
             "start_to_first_estimate_s": 3.0,

@@ -259,6 +259,24 @@ async def test_publish_never_blocks_and_drops_oldest_when_queue_full() -> None:
     assert [publisher._outbox.get_nowait().payload.seq for _ in range(5)] == [7, 8, 9, 10, 11]  # type: ignore[union-attr]
 
 
+def test_qos0_messages_paho_never_wrote_go_back_to_the_backlog_in_order() -> None:
+    from paho.mqtt.client import MQTTMessageInfo
+
+    from dffd.mqtt.publisher import _Outgoing
+
+    publisher = Publisher(PublisherSettings("127.0.0.1", 1, backlog_max_messages=3), TOPICS)
+    publisher._backlog.append(_Outgoing("estimate", estimate(9)))  # queued during the outage
+    infos = [MQTTMessageInfo(mid) for mid in range(4)]
+    infos[0]._set_as_published()  # written before the connection dropped
+    for seq, info in enumerate(infos):
+        publisher._unsent.append((info, _Outgoing("estimate", estimate(seq))))
+    publisher._keep_unsent()
+    # 1, 2, 3 were never written; the backlog holds 3: the oldest of them does not fit
+    assert [o.payload.seq for o in publisher._backlog] == [2, 3, 9]  # type: ignore[union-attr]
+    assert publisher.stats().backlog_dropped == 1
+    assert not publisher._unsent
+
+
 # -- against a real broker ---------------------------------------------------------------------
 
 
