@@ -241,6 +241,13 @@ def test_soak_writes_its_figures_and_plot(tmp_path: Path) -> None:
     assert len(result["windows"]) >= 3
     assert all(w["estimate_hz"] >= 0 for w in result["windows"])
     assert (out / "soak.png").stat().st_size > 0
+    # the service's own share: estimates matched with their frame's delivery (…/sim/truth)
+    own = result["latency_ms"]["delivered_to_subscriber"]
+    assert result["latency_ms"]["delivered_matched"] > 0
+    assert 0 < own["p50"] < lat["p50"]
+    # per-thread CPU by kernel thread name: the estimator and the simulator's renderer apart
+    assert "dffd-estimator" in result["thread_cpu_pct_one_core"]
+    assert 0 <= result["service_cpu_pct_one_core"] <= result["cpu_pct_one_core"]
 
 
 def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> None:
