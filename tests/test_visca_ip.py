@@ -250,3 +250,31 @@ def test_camera_message_type_errors_and_lax_controllers() -> None:
         [r] = _exchange(cam, encode_datagram(PayloadType.COMMAND, 0, FOCUS_POS_INQ), t)
         assert (r.kind, r.seq, r.payload[:2]) == (PayloadType.REPLY, 0, b"\x90\x50")
     assert cam.message_type_errors == 2
+
+
+@pytest.mark.parametrize("late_first", [True, False])
+def test_a_resent_inquiry_answered_under_the_old_number_frees_the_line(late_first: bool) -> None:
+    # The answer to seq 1 was only late; seq 2 (the resend sharing its reply state) is pending.
+    # Whichever answer comes first reaches the session once, and the next queued packet goes out
+    # — before, a duplicate answer to the pending resend left it pending: resent, refused
+    # "already performed", resent again for ever, and everything queued behind it stalled.
+    ch = _connected()
+    ch.send(FOCUS_POS_INQ, 0.0)
+    ch.datagrams_to_send()
+    ch.poll(RETRANSMIT_S)
+    ch.datagrams_to_send()
+    ch.receive(_reply(1, "0f01", PayloadType.CONTROL_REPLY), 0.07)
+    [again] = ch.datagrams_to_send()
+    assert decode_datagram(again).seq == 2
+    ch.send(FOCUS_DIRECT, 0.075)  # the session's next request waits behind seq 2
+    assert ch.datagrams_to_send() == []
+    answers = [(1, 0.08), (2, 0.09)] if late_first else [(2, 0.08), (1, 0.09)]
+    for seq, t in answers[:1]:
+        ch.receive(_reply(seq, "905003000000ff"), t)
+    [command] = ch.datagrams_to_send()
+    assert decode_datagram(command) == Datagram(PayloadType.COMMAND, 3, FOCUS_DIRECT)
+    for seq, t in answers[1:]:
+        ch.receive(_reply(seq, "905003000000ff"), t)
+    assert ch.data_received() == bytes.fromhex("905003000000ff")
+    ch.poll(0.1 + RETRANSMIT_S)  # no resend of the inquiry: only the command is in flight
+    assert all(decode_datagram(d).seq == 3 for d in ch.datagrams_to_send())

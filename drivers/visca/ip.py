@@ -373,9 +373,22 @@ class IpChannel:
         matched = self._matches_pending(msg.seq)
         seen = self._seen.get(msg.seq) if msg.seq else None
         kind = (data[1] & 0xF0) if len(data) >= 3 else 0
+        shares_pending = (
+            pending is not None and seen is not None and self._seen.get(pending.seq) is seen
+        )
         if seen is not None and not self._fresh(seen, kind, data):
             self.stats.duplicates += 1
+            if matched and pending is not None:
+                # The answer already reached the session under a number this one shares (a
+                # resent inquiry): nothing more to wait for — keep the line moving.
+                self._pending = None
+                self._pump(now)
             return
+        if not matched and shares_pending and seen is not None and seen.done:
+            # A late answer to the older number the pending resend shares its reply state with:
+            # the session has its answer, so the resend is answered too (left pending, it would
+            # be resent, refused "already performed" and asked again for ever, stalling the line).
+            matched = True
         if matched and pending is not None:
             self._pending = None
             if pending.echo_as is not None and kind == 0x50:
