@@ -159,7 +159,7 @@ def pipeline_config(scenario: Scenario, config: DffdConfig) -> PipelineConfig:
     overrides = dict(scenario.estimator)
     # Nested sections given as tables (``--set estimator.plan={outer_blur_px=2.0}``) update the
     # defaults field by field.
-    for name in ("plan", "fit", "tracker", "kf_noise"):
+    for name in ("plan", "fit", "tracker", "kf_noise", "noise_adapt"):
         if isinstance(overrides.get(name), dict):
             overrides[name] = dataclasses.replace(getattr(base, name), **overrides[name])
     return dataclasses.replace(base, **overrides)

@@ -248,7 +248,9 @@ class KFNoise:
     # 0.35–0.49 µm on the moving scenarios (after the pan/tilt fix; it was 0.9 µm before).
     sigma_rho: float = 0.0002  # 1/s/√Hz: white noise on ρ (size-ratio noise) ⇒ ż noise ∝ z
     sigma_b: float = 0.0005  # m/s/√Hz: random walk of the disturbance b
-    sigma_v_mm: float = 0.0004  # σ of v̂ from a burst; z_m noise = σ_v |dz/dv| ∝ z²
+    # Not used by the pipeline any more: the measurement noise is the fit's σ scaled by a ratio
+    # adapted online (dffd/core/noise.py, docs/estimation.md §9); kept for old --set overrides.
+    sigma_v_mm: float = 0.0004
     sigma_b0: float = 0.05  # m/s: initial uncertainty of b
 
 
