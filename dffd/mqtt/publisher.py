@@ -540,8 +540,14 @@ class Publisher:
             except TimeoutError:
                 raise aiomqtt.MqttError("MQTT socket did not drain; publish timed out") from None
             unsent.popleft()
-        # aiomqtt keeps the paho client in `_client`; its own publish() calls exactly this.
-        paho = client._client
+        # aiomqtt keeps the paho client in `_client`; its own publish() calls exactly this. A
+        # future aiomqtt without it gets the plain (slower) publish.
+        paho = getattr(client, "_client", None)
+        if paho is None:
+            await client.publish(
+                topic, data, qos=0, retain=retained(item.kind), timeout=PUBLISH_TIMEOUT_S
+            )
+            return
         info = paho.publish(topic, data, 0, retained(item.kind))
         if info.rc != MQTT_ERR_SUCCESS:
             raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
