@@ -8,14 +8,24 @@ identifies as picks its profile, with a warning when the configuration names ano
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import logging
 
 import pytest
 
 from drivers.sim.device import MODEL_EVI_D70, DeviceConfig
+from drivers.sim.faults import Faults
+from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.server import SimCameraServer
-from drivers.visca.camera import EVI_D70, EVI_D100, SRG_300, Camera, profile_for_version
+from drivers.visca.camera import (
+    EVI_D70,
+    EVI_D100,
+    IP_COMPLETION_PROBE_S,
+    SRG_300,
+    Camera,
+    profile_for_version,
+)
 from drivers.visca.errors import ViscaSyntaxError
 from drivers.visca.link import ViscaLink
 from tests.visca_support import FAST, sim_camera
@@ -105,3 +115,30 @@ def test_identities_map_to_profiles() -> None:
     assert profile_for_version(0x0020, 0x040E) is EVI_D70  # FCB-style Sony vendor ID
     assert profile_for_version(0x0001, 0x0516) is SRG_300
     assert profile_for_version(0x0001, 0x7777) is None
+
+
+async def test_a_lost_completion_over_visca_ip_is_recovered_by_inquiry() -> None:
+    # Every Completion is lost; over VISCA over IP the camera API asks where the lens and the
+    # head are after IP_COMPLETION_PROBE_S of silence and takes a move at its target as done,
+    # long before the move's own Completion timeout (3.5 s for a focus move).
+    config = DeviceConfig(network_change_at_power_up=False, focus_speed_counts_s=0x7400 / 0.3)
+    async with (
+        SimUdpServer(config) as server,
+        ViscaLink(server.url, timeouts=FAST) as link,
+    ):
+        camera = Camera(link, 1, EVI_D100)
+        await camera.initialize()
+        server.device.faults = Faults("seed=1,lose_completion=1.0")  # from now on
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        await camera.focus_direct(0x3000)
+        await camera.pan_tilt_absolute(12.5, -4.0)
+        elapsed = loop.time() - t0
+        assert await camera.focus_position() == 0x3000
+        pan, tilt = await camera.pan_tilt_position()
+        assert (pan, tilt) == (pytest.approx(12.5, abs=0.1), pytest.approx(-4.0, abs=0.1))
+        assert camera.completions_inferred == 2
+        assert link.health().lost_completions >= 2
+        assert link.health().timeouts.get("Completion", 0) == 0
+    # Two moves, each found over at the first or second probe: well under one focus timeout.
+    assert elapsed < 4 * IP_COMPLETION_PROBE_S + 1.0

@@ -70,6 +70,7 @@ __all__ = [
     "DEFAULT_RETRIES",
     "EVI_D70",
     "EVI_D100",
+    "IP_COMPLETION_PROBE_S",
     "MOVE_TIMEOUT_FACTOR",
     "MOVE_TIMEOUT_MARGIN_S",
     "PROFILES",
@@ -92,6 +93,10 @@ MOVE_TIMEOUT_MARGIN_S = 1.0
 # Completion, one inquiry every two fields (the camera answers one message per field).
 FOCUS_SETTLE_TIMEOUT_S = 1.0
 FOCUS_POLL_PERIOD_S = 2 * FIELD_S
+# VISCA over IP: a move silent this long is checked by a position inquiry (a lost Completion
+# is then recovered in ~0.5 s instead of the move's whole timeout, 3.5 s for a focus move).
+# Half a second is ~15 fields: far longer than a Completion's round trip on a LAN.
+IP_COMPLETION_PROBE_S = 0.5
 DEFAULT_RETRIES = 1  # retries of an idempotent operation after a timeout or Network Change
 
 
@@ -107,6 +112,7 @@ class Camera:
         retries: int = DEFAULT_RETRIES,
         move_timeout_margin_s: float = MOVE_TIMEOUT_MARGIN_S,
         adopt_profile: bool = True,
+        completion_probe_s: float | None = None,
     ) -> None:
         check_range("camera address", address, 1, 7)
         self.link = link
@@ -115,6 +121,10 @@ class Camera:
         # At initialise, switch to the profile of the model the camera identifies as (its real
         # limits); False keeps ``profile`` whatever the camera says (both warn on a mismatch).
         self.adopt_profile = adopt_profile
+        # Check a move by inquiry after this much silence (None: IP_COMPLETION_PROBE_S on VISCA
+        # over IP, never on serial and TCP, which do not lose packets; 0: never).
+        self.completion_probe_s = completion_probe_s
+        self.completions_inferred = 0  # moves ended by inquiry after a lost Completion
         self.retries = retries
         self.move_timeout_margin_s = move_timeout_margin_s
         self.version_info: Version | None = None
@@ -154,7 +164,11 @@ class Camera:
     async def focus_direct(self, counts: int) -> None:
         """Move the focus to ``counts``; return once the lens has stopped."""
         request = FocusDirect(self.profile.check_focus(counts))
-        await self._command(request, self._focus_timeout_s())
+
+        async def reached() -> bool:
+            return await self.focus_position() == counts
+
+        await self._command(request, self._focus_timeout_s(), reached)
         if self.profile.focus_completion_early:
             await self._wait_focus_settled(counts)
 
@@ -197,7 +211,11 @@ class Camera:
         """Move the zoom to ``counts``; return once it has stopped."""
         request = ZoomDirect(self.profile.check_zoom(counts))
         timeout = self.profile.zoom_full_travel_s * MOVE_TIMEOUT_FACTOR + self.move_timeout_margin_s
-        await self._command(request, timeout)
+
+        async def reached() -> bool:
+            return await self.zoom_position() == counts
+
+        await self._command(request, timeout, reached)
 
     async def zoom_position(self) -> int:
         """ZoomPosInq in counts."""
@@ -220,7 +238,18 @@ class Camera:
         request, timeout = self._pan_tilt_move(
             PanTiltAbsolute, pan_deg, tilt_deg, speed, tilt_speed
         )
-        await self._command(request, timeout)
+        assert isinstance(request, PanTiltAbsolute)
+        target = (request.pan, request.tilt)
+
+        async def reached() -> bool:
+            pan, tilt = await self.pan_tilt_position()
+            p = self.profile
+            return (
+                round(pan * p.pan_counts_per_deg),
+                round(tilt * p.tilt_counts_per_deg),
+            ) == target
+
+        await self._command(request, timeout, reached)
 
     async def start_pan_tilt_absolute(
         self,
@@ -301,10 +330,53 @@ class Camera:
 
     # ---- internals ----------------------------------------------------------------------------
 
-    async def _command(self, request: Command, completion_timeout: float | None = None) -> None:
-        await self._retry(
-            lambda: self.link.command(self.address, request, completion_timeout=completion_timeout)
-        )
+    async def _command(
+        self,
+        request: Command,
+        completion_timeout: float | None = None,
+        reached: Callable[[], Awaitable[bool]] | None = None,
+    ) -> None:
+        probe_s = self._probe_s()
+        if reached is None or probe_s is None:
+            await self._retry(
+                lambda: self.link.command(
+                    self.address, request, completion_timeout=completion_timeout
+                )
+            )
+            return
+
+        async def probed() -> None:
+            # On a lossy link a Completion can be lost after its ACK; rather than wait the whole
+            # move timeout, ask where the axis is after each PROBE of silence: at the target,
+            # the move is over and its Completion was lost.
+            handle = self.link.submit(self.address, request, completion_timeout=completion_timeout)
+            await handle.acked()
+            while True:
+                try:
+                    async with asyncio.timeout(probe_s):
+                        await handle.completed()
+                    return
+                except TimeoutError:
+                    if handle.done():
+                        await handle.completed()
+                        return
+                if await reached():
+                    if self.link.completion_inferred(handle):
+                        self.completions_inferred += 1
+                        logger.info(
+                            "camera %d: %s reached its target but no Completion came (lost on "
+                            "the network); taken as completed",
+                            self.address, type(request).__name__,
+                        )  # fmt: skip
+                    return
+
+        await self._retry(probed)
+
+    def _probe_s(self) -> float | None:
+        """Silence after which a running move is checked by inquiry (None: never)."""
+        if self.completion_probe_s is not None:
+            return self.completion_probe_s if self.completion_probe_s > 0 else None
+        return IP_COMPLETION_PROBE_S if self.link.url.startswith("visca-ip://") else None
 
     async def _retry(self, operation: Callable[[], Awaitable[T]]) -> T:
         attempt = 0
@@ -447,6 +519,7 @@ class Camera:
             retries=self.retries,
             move_timeout_margin_s=self.move_timeout_margin_s,
             adopt_profile=self.adopt_profile,
+            completion_probe_s=self.completion_probe_s,
         )
         self.version_info = await shadow._setup()
         self.profile = shadow.profile

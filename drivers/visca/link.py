@@ -214,6 +214,8 @@ class LinkApi(Protocol):
 
     def running(self, address: int) -> dict[int, Command]: ...
 
+    def completion_inferred(self, handle: CommandHandle) -> bool: ...
+
     def add_reinit_callback(self, callback: ReinitCallback) -> None: ...
 
     def add_reinit_step(self, step: ReinitStep) -> None: ...
@@ -411,6 +413,13 @@ class ViscaLink:
     def running(self, address: int) -> dict[int, Command]:
         """Commands in flight for ``address`` by socket (as the session believes)."""
         return self._session.running(address)
+
+    def completion_inferred(self, handle: CommandHandle) -> bool:
+        """The caller saw the command's move end (by inquiry): complete it as if its Completion
+        came; True if it was still running (its Completion counts as lost)."""
+        ended = self._session.completion_lost(handle._waiter.ticket, time.monotonic())
+        self._service()
+        return ended
 
     # ---- requests -----------------------------------------------------------------------------
 
@@ -833,6 +842,10 @@ class ReinitLink:
     def running(self, address: int) -> dict[int, Command]:
         """:meth:`ViscaLink.running`."""
         return self._link.running(address)
+
+    def completion_inferred(self, handle: CommandHandle) -> bool:
+        """:meth:`ViscaLink.completion_inferred`."""
+        return self._link.completion_inferred(handle)
 
     def add_reinit_callback(self, callback: ReinitCallback) -> None:
         """:meth:`ViscaLink.add_reinit_callback`."""

@@ -266,6 +266,25 @@ class ViscaSession:
             return True
         return False
 
+    def completion_lost(self, ticket: int, now: float) -> bool:
+        """End a running command as completed: its caller saw the move end but no Completion came.
+
+        True if the command was running in a socket (counted as a lost Completion); a
+        Completion arriving later is then a stray reply for an idle socket.
+        """
+        entry = self._live.get(ticket)
+        if not isinstance(entry, _CommandEntry) or entry.socket is None:
+            return False
+        cam = self._cameras[entry.address]
+        if cam.sockets.get(entry.socket) is not entry:
+            return False
+        self._lost_completions += 1
+        logger.debug(
+            "camera %d: %s ended by inquiry; its Completion was lost", cam.address, entry.name
+        )
+        self._finish_command(cam, entry, None, now)
+        return True
+
     # ---- input and time ---------------------------------------------------------------------
 
     def receive(self, data: bytes, now: float) -> list[SessionEvent]:
