@@ -278,3 +278,24 @@ def test_a_resent_inquiry_answered_under_the_old_number_frees_the_line(late_firs
     assert ch.data_received() == bytes.fromhex("905003000000ff")
     ch.poll(0.1 + RETRANSMIT_S)  # no resend of the inquiry: only the command is in flight
     assert all(decode_datagram(d).seq == 3 for d in ch.datagrams_to_send())
+
+
+def test_a_refused_number_answered_late_after_the_reset_reaches_the_session_once() -> None:
+    # A duplicate of seq 1 reached the camera first ("already performed"), nothing else came in
+    # time: RESET and resend as seq 2 — then the real answer to seq 1 arrives, and seq 2's.
+    ch = _connected()
+    ch.send(FOCUS_POS_INQ, 0.0)
+    ch.datagrams_to_send()
+    ch.receive(_reply(1, "0f01", PayloadType.CONTROL_REPLY), 0.005)
+    ch.poll(RETRANSMIT_S)
+    [reset] = ch.datagrams_to_send()
+    assert decode_datagram(reset).kind == PayloadType.CONTROL
+    ch.receive(_reply(0, "01", PayloadType.CONTROL_REPLY), RETRANSMIT_S + 0.001)
+    [again] = ch.datagrams_to_send()
+    assert decode_datagram(again) == Datagram(PayloadType.INQUIRY, 2, FOCUS_POS_INQ)
+    ch.send(FOCUS_DIRECT, RETRANSMIT_S + 0.002)
+    ch.receive(_reply(1, "905003000000ff"), RETRANSMIT_S + 0.01)  # late, under the old number
+    [command] = ch.datagrams_to_send()  # the line moves on
+    assert decode_datagram(command).payload == FOCUS_DIRECT
+    ch.receive(_reply(2, "905003000000ff"), RETRANSMIT_S + 0.02)
+    assert ch.data_received() == bytes.fromhex("905003000000ff")  # one answer, not two

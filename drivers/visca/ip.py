@@ -182,12 +182,14 @@ class IpChannel:
         self._queue: deque[_Out] = deque()
         self._pending: _Out | None = None
         self._seen: OrderedDict[int, _Seen] = OrderedDict()
+        self._socket_seq: dict[int, int] = {}  # socket → sequence number of its last ACK
         self._datagrams: list[bytes] = []
         self._data = bytearray()
 
     def connection_made(self, now: float) -> None:
         """Start (or restart) the sequence: RESET goes out before anything queued."""
         self._seen.clear()
+        self._socket_seq.clear()
         if self._pending is not None and self._pending.kind is not PayloadType.CONTROL:
             self._queue.appendleft(self._pending)
         self._pending = None
@@ -242,7 +244,10 @@ class IpChannel:
             # sequence (restarted, another controller). RESET, then send under a new number.
             logger.info("VISCA over IP: sequence error from the camera; resetting the sequence")
             self._pending = None
-            self._queue.appendleft(_Out(out.kind, out.payload, out.echo_as))
+            # The refused number may still be answered late (a duplicate of it was what the
+            # camera refused): the resend shares its reply state, so one answer reaches the
+            # session, whichever number it comes under.
+            self._queue.appendleft(_Out(out.kind, out.payload, out.echo_as, shares=out.seq))
             self._queue.appendleft(_Out(PayloadType.CONTROL, CONTROL_RESET))
             self.stats.resets += 1
             self._pump(now)
@@ -255,6 +260,13 @@ class IpChannel:
         logger.debug("VISCA over IP: no reply to seq %d after %d sends", out.seq, out.sent)
         self._pending = None  # the session's own timeout reports it
         self._pump(now)
+
+    def socket_done(self, socket: int) -> None:
+        """The command ACKed in ``socket`` is over (found by inquiry): drop its late replies."""
+        seq = self._socket_seq.pop(socket, None)
+        seen = self._seen.get(seq) if seq is not None else None
+        if seen is not None:
+            seen.done = True
 
     def next_deadline(self) -> float | None:
         """When :meth:`poll` must run next (None: nothing in flight)."""
@@ -373,6 +385,8 @@ class IpChannel:
         matched = self._matches_pending(msg.seq)
         seen = self._seen.get(msg.seq) if msg.seq else None
         kind = (data[1] & 0xF0) if len(data) >= 3 else 0
+        if kind == 0x40 and msg.seq:
+            self._socket_seq[data[1] & 0x0F] = msg.seq
         shares_pending = (
             pending is not None and seen is not None and self._seen.get(pending.seq) is seen
         )

@@ -417,7 +417,11 @@ class ViscaLink:
     def completion_inferred(self, handle: CommandHandle) -> bool:
         """The caller saw the command's move end (by inquiry): complete it as if its Completion
         came; True if it was still running (its Completion counts as lost)."""
+        socket = handle.socket
         ended = self._session.completion_lost(handle._waiter.ticket, time.monotonic())
+        channel = getattr(self._transport, "channel", None)
+        if ended and socket is not None and channel is not None:
+            channel.socket_done(socket)  # VISCA over IP: a late Completion must not follow
         self._service()
         return ended
 
