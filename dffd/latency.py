@@ -13,7 +13,10 @@ frame clock its mean is half a period after. The move starts when the camera acc
 command, which its VISCA ACK reports. So each trial gives ``arrival − t_ack − 1/(2·fps)``; the
 median over the trials is the latency. The method ignores the exposure time (the mean is early
 by half the exposure: 2 ms at 1/250 s) and the ACK's transit (≤ 3 ms at 9600 baud, ~0 on a
-network). Against the simulator it reads about −5 ms where frames are stamped exactly
+network). A camera acts on commands at field boundaries: when its frames are locked to the
+fields, the step's phase is not random and a reading can be off by up to half a field (±8 ms at
+60 Hz). Against the simulator it reads about −5 ms (±8 ms from run to run) where frames are
+stamped exactly
 (``sim.video = "direct"``), and the simulator's own capture delay plus encoding and transport
 over HTTP (tests/test_latency.py).
 """

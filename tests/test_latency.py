@@ -20,8 +20,13 @@ pytestmark = pytest.mark.slow
 
 # The sim's own delivery delay: exposure 4 ms / 2 + 1 frame at 30 fps (drivers/sim/data).
 SIM_CAPTURE_DELAY_S = 0.002 + 1 / 30
-# Median of 12 trials of a uniform ±17 ms phase error: σ ≈ 3.5 ms; 12 ms is > 3σ.
-TOLERANCE_S = 0.012
+# The median of 12 trials has σ ≈ 3.5 ms from the uniform phase error; and the simulated camera
+# acts on a command at a field boundary (60 Hz) while its frames keep their own 30 Hz grid, so
+# the step's phase is quantised and the reading of a run is biased by up to ±8 ms (one run read
+# +8 ms). 20 ms covers both.
+TOLERANCE_S = 0.020
+# Event-loop lag on a loaded 2-core machine that delays the ACK's time stamp (≤ 25 ms seen).
+LOOP_LAG_S = 0.030
 # Encoding, loopback and decoding of a 640×480 JPEG on a loaded 2-core machine: 0–40 ms.
 HTTP_EXTRA_MAX_S = 0.040
 
@@ -46,7 +51,9 @@ video = "{video}"
 
 async def test_latency_of_exactly_stamped_frames_reads_zero(tmp_path: Path) -> None:
     result = await measure_for_config(load_config(_config(tmp_path, "direct")), trials=12)
-    assert result.latency_s == pytest.approx(-0.005, abs=TOLERANCE_S), result.trials_s
+    # About −5 ms (the method's bias). The ACK's time is taken when the event loop runs, which a
+    # loaded machine delays (one full-suite run read −20 ms): the reading can err low, not high.
+    assert -0.005 - LOOP_LAG_S < result.latency_s < -0.005 + TOLERANCE_S, result.trials_s
 
 
 async def test_latency_of_the_simulators_http_video(tmp_path: Path) -> None:
