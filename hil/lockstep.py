@@ -366,6 +366,7 @@ class _Runner:
         est = out.estimate
         if est is None:
             return
+        res.estimate_frames += 1
         res.r_px.add(frame.t, est.r_px, truth.r_px)
         res.truth_depth.add(frame.t, truth_z, truth_z)
         for name, z in est.depth_m.items():

@@ -91,6 +91,7 @@ class RunResult:
     bursts: list[BurstRecord] = field(default_factory=list)
     frames: int = 0
     frames_by_role: dict[str, int] = field(default_factory=dict)
+    estimate_frames: int = 0  # frames the core answered with an estimate (any role)
     depth_limit_hz: float | None = None
     full_sweep_depth_hz: float | None = None
     core_cpu_s: list[float] = field(default_factory=list)  # per processed frame

@@ -4,28 +4,21 @@ Per frame (pure, synchronous, deterministic; no clock but the frames' own ``t``)
 
 * ``acquiring``/``lost``: look for the target (pending ROI, else near the last position, else the
   whole frame when ``auto_acquire``); on success the contour is refined on that frame.
-* every frame: the active contour is updated (transit frames: translation only).
-* burst frames: the focus cost (``focus_measure``: (2) or the edge second moment) is taken along
-  the normals; when the burst is complete (its
-  ``burst_size`` slots, or a track frame / another burst id arrives) the parabola is fitted and a
-  :class:`Measurement` is emitted (a burst left with fewer than three frames is not emitted: it is
-  counted in :attr:`Pipeline.burst_rejections` with the reason). A burst one of whose frames has
-  no edge-moment cost (its blur overflows the normal lines: the first, full-range brackets) is
-  fitted with (2) on all its frames and counted in :attr:`Pipeline.measure_fallbacks`.
-* rolling bursts (the scheduler's ``rolling`` mode, a triangle lo, mid, hi, mid, lo, … of focus
-  settings): the end frames are tagged ``burst`` with slot 2 alone; such a frame closes a burst
-  made of the previous end frame (the other side of the bracket), the last tracking frame between
-  the two (at the middle: tracking frames carry their focus cost too) and itself. The first end of
-  a sequence (or one whose previous end is missing, stale or on the same side) opens a sequence.
-* track frames: the normalised size ``s = r p / F`` (``F`` the image distance, i.e. ``v0`` of the
-  frame's focus setting under the thin-lens magnification) gives ``ρ`` and the exact transition
-  ``s_k/s_{k+1}``; every estimator predicts; a pending accepted measurement is applied; an
-  :class:`Estimate` is emitted.
+* every frame: the active contour is updated (:mod:`dffd.core.contour`).
+* burst frames (and tracking frames, the middle of a rolling burst): the focus cost is taken
+  along the normals and gathered into bursts, fitted when the next tracking frame arrives
+  (:mod:`dffd.core.bursts`); an accepted fit is a :class:`Measurement`.
+* every frame with a contour, whatever its role: the normalised size ``s = r p / F`` (``F`` the
+  image distance: the focal length, or ``v0`` of the frame's focus setting under the thin-lens
+  magnification) gives ``ρ`` and the exact transition ``s_k/s_{k+1}``; every estimator predicts
+  (:mod:`dffd.core.estimators`); at a tracking frame a pending accepted measurement is applied;
+  an :class:`Estimate` is emitted — estimates come at the frame rate.
 
 Measurements are *transported* to the current frame with the size invariant ``z s = R``: a burst
-at mid-time ``t_b`` yields a size measurement ``R_m = z_m s(t_b)`` and the depth measurement fed to
-every estimator at later frames is ``R_m / s`` (exact under the model; removes the staleness of a
-held ``z_m``). See docs/estimation.md.
+at mid-time ``t_b`` yields a size measurement ``R_m = z_m s(t_b)`` (``s(t_b)`` from the sizes of
+the frames around it, :mod:`dffd.core.sizes`) and the depth measurement fed to every estimator
+at later frames is ``R_m / s`` (exact under the model; removes the staleness of a held ``z_m``).
+See docs/estimation.md.
 """
 
 from __future__ import annotations
@@ -40,38 +33,55 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core.bursts import BurstAssembler, FocusSettings
 from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig, find_target
-from dffd.core.filters import (
-    CF1,
-    CF2,
-    DepthKF,
-    Differentiator,
-    KFNoise,
-    KFTraceEvent,
-    LPVGains,
-    LPVObserver,
-)
-from dffd.core.filters import cf2_gains as _cf2_gains
-from dffd.core.focus import FitConfig, PlanConfig, fit_burst, frame_cost
+from dffd.core.estimators import EstimatorBank
+from dffd.core.filters import Differentiator, KFNoise, KFTraceEvent
+from dffd.core.focus import FitConfig, PlanConfig
 from dffd.core.focus import plan_burst as _plan_burst
 from dffd.core.geometry import VelocityEstimator, camera_point, to_world
 from dffd.core.lens import Lens
-from dffd.core.noise import NoiseAdaptConfig, model_sigma_v_mm
-from dffd.core.uncertainty import Uncertainty
+from dffd.core.noise import NoiseAdaptConfig
+from dffd.core.outputs import (
+    ESTIMATORS,
+    Estimate,
+    EstimatorName,
+    Measurement,
+    PipelineOutput,
+    TrackState,
+    Vec3,
+)
+from dffd.core.sizes import SizeHistory, SizeOffset
 from dffd.literals import FocusMeasure
 from drivers.frames import Frame
 
 from .types import FrameTag
 
+__all__ = [
+    "ESTIMATORS",
+    "Estimate",
+    "EstimatorName",
+    "Measurement",
+    "Pipeline",
+    "PipelineConfig",
+    "PipelineOutput",
+    "TrackState",
+    "Vec3",
+]
+
 logger = logging.getLogger(__name__)
 
-TrackState = Literal["idle", "acquiring", "tracking", "lost"]
-EstimatorName = Literal["measured", "cf1", "cf2", "lpv", "kf"]
-ESTIMATORS: tuple[EstimatorName, ...] = ("measured", "cf1", "cf2", "lpv", "kf")
-Vec3 = tuple[float, float, float]
-# Memoised focus settings (lens table look-ups): the counts of a session span a few thousand
-# values at most; the cache is emptied when it reaches this size.
-V_CACHE_ENTRIES = 4096
+# Sizes kept for the burst compensation and the transport of a burst's depth: ~8.5 s at 30 fps,
+# more than a rolling burst's span (rolling_max_span_s) plus the wait for its tracking frame.
+SIZE_HISTORY_FRAMES = 256
+# A frame gives a size when its edge profile, this many log-parabola widths, fits in the normal
+# lines (±search_px): wider (the full-range brackets' outer frames, fast focus transits) the
+# curvature correction of r fails (synthetic discs of 20/40 px: r −0.05…−0.56 px at widths of
+# 4.1–5.6 px, < 0.01 px up to 3.3 px; docs/estimation.md §11).
+SIZE_EDGE_WIDTHS = 3.0
+# A size off the track is a jump only within this time of the last used size (s): further, the
+# filtered rate's prediction is too uncertain (a rolling bracket's track frames are ~0.2 s apart).
+SIZE_JUMP_MAX_GAP_S = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,6 +135,13 @@ class PipelineConfig:
     # the filter integrates it, and it has no lag); "differentiator" = the filtered ṙ (lags 2ζ/ω)
     psi_source: Literal["step", "differentiator"] = "step"
     max_gap_s: float = 2.0  # estimators restart after a gap without tracking longer than this
+    # A depth jump: ln s of a frame off the filtered rate's prediction by more than this (the
+    # per-frame size noise is 0.03-0.05 %, a jitter-lost-and-found target or another target 40x
+    # that). No burst is fitted and no depth transported across it (docs/estimation.md §11).
+    size_jump_ln: float = 0.02
+    # Size offset s_m = R/z + δ p/F (dffd.core.sizes.SizeOffset): the prior σ of δ in px; None
+    # leaves it out (the default: not yet validated on the bench, docs/estimation.md §11).
+    size_offset_prior_px: float | None = None
     auto_acquire: bool = True
     reacquire_every_frames: int = 5  # whole-frame search period while lost (it costs ~ms)
     motion: Literal["similarity", "affine"] = "similarity"
@@ -146,102 +163,8 @@ class PipelineConfig:
     focus_measure: FocusMeasure
 
 
-@dataclass(frozen=True, slots=True)
-class Measurement:
-    """One burst: settings, costs, parabola fit and the depth measurement (``…/measurement``)."""
-
-    burst_id: int
-    t: float  # mid-time of the burst frames
-    frame_indices: tuple[int, ...]
-    focus_counts: tuple[int, ...]
-    v_mm: tuple[float, ...]
-    costs: tuple[float, ...]
-    cost_sigmas: tuple[float, ...]
-    alpha: float
-    v_hat_mm: float
-    residual: float
-    accepted: bool
-    reason: str
-    z_m: float | None
-    sigma_m: float | None
-
-
-@dataclass(frozen=True, slots=True)
-class Estimate:
-    """Everything known at one tracking frame (``…/estimate``)."""
-
-    frame_index: int
-    t: float
-    state: TrackState
-    depth_m: dict[str, float | None]  # measured, cf1, cf2, lpv, kf
-    measured_t: float | None  # burst mid-time of ``depth_m["measured"]``
-    best: EstimatorName
-    z_m: float | None  # the best estimator's depth
-    sigma_m: float | None
-    beta_m_s: float | None  # CF2 bias estimate β̂
-    lpv_b_m_s: float | None  # LPV disturbance estimate
-    size_m: float | None  # R̂ = ẑ s
-    r_px: float
-    rho: float | None  # ṙ/r over the last step, 1/s
-    centroid_px: tuple[float, float]
-    position_m: Vec3 | None  # camera frame
-    velocity_m_s: Vec3 | None
-    position_world_m: Vec3 | None
-    velocity_world_m_s: Vec3 | None
-    pan_deg: float
-    tilt_deg: float
-    focus_counts: int | None
-    inlier_fraction: float
-    # σ per estimator (measured, cf1, cf2, lpv, kf; None where it has no value); sigma_m is the
-    # best's. Honest σ: adapted noise, correlated measurements, Student-t start-up factor.
-    sigma_by: dict[str, float | None] = field(default_factory=dict)
-
-
-@dataclass(frozen=True, slots=True)
-class PipelineOutput:
-    """Result of one :meth:`Pipeline.process` call."""
-
-    state: TrackState
-    estimate: Estimate | None
-    measurement: Measurement | None
-    observation: BoundaryObservation | None
-
-
-@dataclass(slots=True)
-class _BurstSample:
-    index: int
-    t: float
-    counts: int
-    v_mm: float
-    g: float  # cost of the configured measure (NaN: none on this frame)
-    sigma_g: float
-    peak: tuple[float, float] | None  # cost (2) when the measure is another one (its fallback)
-
-
 class Pipeline:
     """Tagged frames → estimates; the scheduler asks it for predictions and burst plans."""
-
-    _cf1: CF1
-    _cf2: CF2
-    _lpv: LPVObserver
-    _kf: DepthKF
-    _diff: Differentiator
-    _vel_cam: VelocityEstimator
-    _vel_world: VelocityEstimator
-    _size_meas: float | None  # R_m of the last accepted burst
-    _cf2_size: float | None
-    _n_accepted: int
-    _pending: Measurement | None
-    _prev: tuple[float, float] | None  # (t, s) of the last tracking frame
-    _initialised: bool
-    _last_measured: float | None
-    _prev_pos_t: float | None
-    _burst: list[_BurstSample]
-    _burst_id: int | None
-    _burst_frames: int
-    _last_end: _BurstSample | None  # the last rolling end frame (the next burst's slot 0)
-    _last_mid: _BurstSample | None  # the last tracking frame's cost sample
-    _diff_rate: float | None  # filtered ρ̂ = ṡ/s at the last tracking frame
 
     def __init__(self, config: PipelineConfig, lens: Lens) -> None:
         self.config = config
@@ -250,24 +173,42 @@ class Pipeline:
         if tcfg.n_normals != config.n_normals or tcfg.search_px != config.search_px:
             tcfg = replace(tcfg, n_normals=config.n_normals, search_px=config.search_px)
         self._tracker = ContourTracker(tcfg)
-        k1, k2 = _cf2_gains(config.cf2_sigma_psi, config.cf2_sigma_beta, config.cf2_sigma_z)
-        self.cf2_gains = (k1, k2)
-        self.lpv_gains = LPVGains.from_poles(
-            config.lpv_omega, config.lpv_zeta, config.rho_min, config.rho_max
+        self._settings = FocusSettings(lens)
+        self._bursts = BurstAssembler(
+            self._settings,
+            fit=config.fit,
+            focus_measure=config.focus_measure,
+            trim_fraction=tcfg.trim_fraction,
+            burst_size=config.burst_size,
+            rolling_max_span_s=config.rolling_max_span_s,
         )
+        self._bank = EstimatorBank(config, lens)
+        self.cf2_gains = self._bank.cf2_gains
+        self.lpv_gains = self._bank.lpv_gains
         self._hold = not config.auto_acquire
         self._state: TrackState = "idle" if self._hold else "acquiring"
         self._pending_roi: tuple[int, int, int, int] | None = None
-        self._known_size = config.known_size_m
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
         self._frames_since_search = 0
-        self._v_cache: dict[int, float] = {}  # focus counts -> v (mm), see _v_from_counts
-        # Bursts not emitted (fewer than three frames), by reason.
-        self.burst_rejections: Counter[str] = Counter()
-        # Bursts fitted with cost (2) because a frame had no cost of the configured measure.
-        self.measure_fallbacks = 0
-        self.kf_trace: list[KFTraceEvent] | None = None  # see record_kf
         self._reset_estimators()
+
+    @property
+    def burst_rejections(self) -> Counter[str]:
+        """Bursts not emitted (fewer than three frames with a cost), by reason."""
+        return self._bursts.rejections
+
+    @property
+    def measure_fallbacks(self) -> int:
+        """Bursts fitted with cost (2) because a frame had no cost of the configured measure."""
+        return self._bursts.measure_fallbacks
+
+    @property
+    def size_offset_px(self) -> float | None:
+        """The estimated size offset δ (px), or None (off, or before two bursts)."""
+        est = None if self._offset is None else self._offset.estimate()
+        if est is None:
+            return None
+        return est[0] * self.lens.focal_length_mm / self.lens.pixel_pitch_mm
 
     # -- public API -------------------------------------------------------------------------
     @property
@@ -306,15 +247,13 @@ class Pipeline:
     def record_kf(self, trace: list[KFTraceEvent]) -> None:
         """Append every Kalman-filter step to ``trace`` from now on (an offline smoother's input,
         dffd.core.smoother); the daemon does not record."""
-        self.kf_trace = trace
-        self._kf.trace = trace
+        self._bank.record_kf(trace)
 
     def set_known_size(self, meters: float | None) -> None:
         """Set (enables CF1) or clear the target's known size."""
         if meters is not None and not meters > 0:
             raise ValueError(f"known size must be > 0 m, got {meters}")
-        self._known_size = meters
-        self._cf1 = CF1(self.config.cf1_k)
+        self._bank.set_known_size(meters)
 
     def predicted_depth(self) -> tuple[float, float] | None:
         """(ẑ of the best estimator, σ) at the last tracking frame, or None before the first fix.
@@ -322,9 +261,10 @@ class Pipeline:
         σ is the Kalman filter's (the only estimator with a covariance), a fair proxy for all.
         """
         z = self._depth(self.config.best)
-        if z is None or self._kf.sigma is None:
+        sigma = self._bank.sigma
+        if z is None or sigma is None:
             return None
-        return z, self._kf.sigma
+        return z, sigma
 
     def plan_burst(self, current_counts: int) -> tuple[int, int, int]:
         """Three focus counts for the next burst, ordered to minimise motor travel.
@@ -348,16 +288,17 @@ class Pipeline:
     def process(self, frame: Frame, tag: FrameTag) -> PipelineOutput:
         """Consume one frame and its tag."""
         measurement: Measurement | None = None
-        if self._burst_id is not None and tag.burst is not None and tag.burst[0] != self._burst_id:
-            measurement = self._finish_burst(None)  # a new burst before any tracking frame
+        pending_id = self._bursts.pending_id
+        if pending_id is not None and tag.burst is not None and tag.burst[0] != pending_id:
+            measurement = self._finish_burst()  # a new burst before any tracking frame
         if not self._tracker.active and not self._try_acquire(frame):
             if tag.role == "track":
-                measurement = self._finish_burst(None) or measurement
+                measurement = self._finish_burst() or measurement
             return PipelineOutput(self._state, None, measurement, None)
-        # Every frame follows scale too (transit frames included): r is read on track frames
-        # only, but a contour frozen in size through a long focus travel (the first bursts span
-        # the working range: 40 transit frames) drifts out of the outlier gate and the target
-        # is lost mid-burst (measured on the reference simulator).
+        # Every frame follows scale too (transit frames included): a contour frozen in size
+        # through a long focus travel (the first bursts span the working range: 40 transit
+        # frames) drifts out of the outlier gate and the target is lost mid-burst (measured on
+        # the reference simulator).
         obs = self._tracker.update(frame.image, frame.t, self.config.motion)
         if self._tracker.lost:
             logger.info("target lost at frame %d (t=%.3f)", frame.index, frame.t)
@@ -365,23 +306,24 @@ class Pipeline:
             self._last_box = (c[0], c[1], obs.r_px)
             self._tracker.reset()
             self._state = "lost"
-            self._discard_burst()
-            self._last_end = self._last_mid = None
+            self._bursts.reset()
             return PipelineOutput(self._state, None, measurement, obs)
         if not obs.ok:
             if tag.role == "track":
-                measurement = self._finish_burst(None) or measurement
+                measurement = self._finish_burst() or measurement
             return PipelineOutput(self._state, None, measurement, obs)
         c = obs.centroid
         self._last_box = (c[0], c[1], obs.r_px)
-        if tag.role == "burst" and tag.focus_counts is not None:
-            self._add_burst_sample(frame, tag, obs)
-            return PipelineOutput(self._state, None, measurement, obs)
-        if tag.role != "track" or tag.focus_counts is None:
-            return PipelineOutput(self._state, None, measurement, obs)
-        # A tracking frame is at the best focus: the middle of a rolling burst.
-        self._last_mid = self._cost_sample(frame, tag.focus_counts, obs)
-        estimate, done = self._track_frame(frame, tag, obs)
+        if tag.focus_counts is not None:
+            if tag.role == "burst":
+                self._bursts.add(frame.index, frame.t, tag.focus_counts, tag.burst, obs)
+            elif tag.role == "track":
+                # A tracking frame is at the best focus: the middle of a rolling burst.
+                self._bursts.set_middle(frame.index, frame.t, tag.focus_counts, obs)
+        # Every frame with a contour steps the estimators and yields an estimate (burst and
+        # transit frames too: their size is as good as a tracking frame's, docs/estimation.md
+        # §11); a tracking frame also closes the pending burst.
+        estimate, done = self._frame_estimate(frame, tag, obs)
         return PipelineOutput(self._state, estimate, done or measurement, obs)
 
     # -- acquisition --------------------------------------------------------------------------
@@ -415,308 +357,167 @@ class Pipeline:
                 return True
         return False
 
-    # -- bursts ---------------------------------------------------------------------------------
-    def _add_burst_sample(self, frame: Frame, tag: FrameTag, obs: BoundaryObservation) -> None:
-        # The fit waits for the next tracking frame: its size brackets the burst in time, so
-        # each burst frame's depth relative to the mid-time is interpolated, not extrapolated.
-        assert tag.focus_counts is not None
-        bid, slot = tag.burst if tag.burst is not None else (-1, 0)
-        sample = self._cost_sample(frame, tag.focus_counts, obs)
-        if self._burst_id is None and slot == self.config.burst_size - 1 and slot > 0:
-            self._add_rolling_end(bid, sample)
-            return
-        if self._burst_id is None:
-            self._burst_id = bid
-        if sample is not None:
-            self._burst.append(sample)
-        self._burst_frames += 1
-
-    def _add_rolling_end(self, bid: int, sample: _BurstSample | None) -> None:
-        """A last slot with none before it: a rolling end; close a burst with the previous end
-        and the tracking frame between them (see the module docstring)."""
-        prev, mid = self._last_end, self._last_mid
-        self._last_end = sample
-        if sample is None:
-            return
-        if (
-            prev is None
-            or mid is None
-            or not prev.t < mid.t < sample.t
-            or sample.t - prev.t > self.config.rolling_max_span_s
-            or (prev.counts - mid.counts) * (sample.counts - mid.counts) >= 0
-        ):
-            logger.debug("rolling burst %d opens a sequence (no previous end to close)", bid)
-            return
-        self._burst = [prev, mid, sample]
-        self._burst_id = bid
-        self._burst_frames = 3
-
-    def _cost_sample(
-        self, frame: Frame, counts: int, obs: BoundaryObservation
-    ) -> _BurstSample | None:
-        trim = self._tracker.config.trim_fraction
-        measure = self.config.focus_measure
-        cost = frame_cost(obs, measure, trim)
-        peak = None if measure == "peak_gradient" else frame_cost(obs, "peak_gradient", trim)
-        if cost is None and peak is None:
-            return None
-        g, sigma_g = (math.nan, math.nan) if cost is None else cost
-        return _BurstSample(
-            frame.index, frame.t, counts, self._v_from_counts(counts), g, sigma_g, peak
-        )
-
-    def _discard_burst(self) -> None:
-        self._burst = []
-        self._burst_id = None
-        self._burst_frames = 0
-
-    def _finish_burst(self, after: tuple[float, float] | None) -> Measurement | None:
-        """Fit the pending burst; ``after`` = (t, s) of the tracking frame that follows it."""
-        if self._burst_id is None:
-            return None
-        samples, bid = self._burst, self._burst_id
-        self._discard_burst()
-        if len(samples) < 3:
-            # Not a burst (a claimed frame was dropped, the contour failed on a slot, the link
-            # cut it short): nothing to fit and nothing the ``…/measurement`` schema accepts.
-            reason = f"{len(samples)} of 3 frames with a focus cost"
-            self.burst_rejections[reason] += 1
-            logger.debug("burst %d rejected: %s", bid, reason)
-            return None
-        t_sum = 0.0
-        for s in samples:  # sequential sum (as np.mean of a few values), no array
-            t_sum += s.t
-        t_mid = t_sum / len(samples)
-        if any(math.isnan(s.g) for s in samples):
-            # one frame's blur overflowed the edge-moment window: the whole burst on cost (2)
-            if any(s.peak is None for s in samples):
-                reason = "a frame without a focus cost"
-                self.burst_rejections[reason] += 1
-                logger.debug("burst %d rejected: %s", bid, reason)
-                return None
-            samples = [replace(s, g=s.peak[0], sigma_g=s.peak[1]) for s in samples if s.peak]
-            self.measure_fallbacks += 1
-        v = [s.v_mm for s in samples]
-        g = [s.g for s in samples]
-        sg = [s.sigma_g for s in samples]
-        fit = fit_burst(v, g, sg, self.lens, self.config.fit)
-        log_ratio = self._log_size_ratios([s.t for s in samples], t_mid, after)
-        if log_ratio is not None:
-            z_ref = fit.z_m if fit.accepted else self._depth(self.config.best)
-            for _ in range(2):  # the shift depends (weakly) on the depth it is computed at
-                if z_ref is None or not z_ref > 0:
-                    break
-                v_ref = self.lens.v_from_depth(z_ref)
-                # z_i = z s(t_mid)/s(t_i): the sharp setting at frame i is v(z_i)
-                v_comp = [
-                    vi - (self.lens.v_from_depth(z_ref * math.exp(-lr)) - v_ref)
-                    for vi, lr in zip(v, log_ratio, strict=True)
-                ]
-                fit = fit_burst(v_comp, g, sg, self.lens, self.config.fit)
-                z_ref = fit.z_m if fit.accepted else None
-        m = Measurement(
-            burst_id=bid,
-            t=t_mid,
-            frame_indices=tuple(s.index for s in samples),
-            focus_counts=tuple(s.counts for s in samples),
-            v_mm=tuple(s.v_mm for s in samples),
-            costs=tuple(s.g for s in samples),
-            cost_sigmas=tuple(s.sigma_g for s in samples),
-            alpha=fit.alpha,
-            v_hat_mm=fit.v_hat_mm,
-            residual=fit.residual,
-            accepted=fit.accepted,
-            reason=fit.reason,
-            z_m=fit.z_m,
-            sigma_m=fit.sigma_m,
-        )
-        if fit.accepted:
-            self._pending = m
-        else:
-            logger.debug("burst %d rejected: %s", bid, fit.reason)
-        return m
-
-    # -- estimators -----------------------------------------------------------------------------
+    # -- estimation -------------------------------------------------------------------------
     def _reset_estimators(self) -> None:
         self._reset_filters_keep_tracking()
-        self._burst = []
-        self._burst_id = None
-        self._burst_frames = 0
-        self._last_end = None
-        self._last_mid = None
+        self._bursts.reset()
+
+    def _reset_filters_keep_tracking(self) -> None:
+        cfg = self.config
+        self._bank.reset()
+        self._diff = Differentiator(cfg.differentiator_omega)
+        self._vel_cam = VelocityEstimator(cfg.differentiator_omega / 3)
+        self._vel_world = VelocityEstimator(cfg.differentiator_omega / 3)
+        self._pending: Measurement | None = None
+        self._pending_t0: float | None = None  # its first frame's time
+        self._prev: tuple[float, float] | None = None  # (t, s) of the last frame with a size
+        self._sizes = SizeHistory(SIZE_HISTORY_FRAMES)
+        prior = cfg.size_offset_prior_px
+        self._offset = (
+            None
+            if prior is None
+            else SizeOffset(prior * self.lens.pixel_pitch_mm / self.lens.focal_length_mm)
+        )
+        self._f_img: float | None = None  # image distance at the last known focus setting
+        self._last_measured: float | None = None
+        self._prev_pos_t: float | None = None
+        self._diff_rate: float | None = None  # filtered ρ̂ = ṡ/s at the last frame
+        self._good_t: float | None = None  # time of the last measured (used) size
 
     def _image_distance_mm(self, counts: int) -> float:
         if self.config.magnification == "pinhole":
             return self.lens.focal_length_mm
-        return self._v_from_counts(counts)
-
-    def _v_from_counts(self, counts: int) -> float:
-        """``lens.v_from_counts``, memoised: a PCHIP evaluation costs ~20 µs, and the scheduler
-        returns to the same few focus settings frame after frame."""
-        v = self._v_cache.get(counts)
-        if v is None:
-            if len(self._v_cache) >= V_CACHE_ENTRIES:
-                self._v_cache.clear()
-            v = self._v_cache[counts] = self.lens.v_from_counts(counts)
-        return v
+        return self._settings.v_mm(counts)
 
     def _depth(self, name: EstimatorName) -> float | None:
-        if not self._initialised:
-            return None
-        if name == "cf1":
-            return self._cf1.z if self._known_size is not None else None
-        if name == "cf2":
-            return self._cf2.z
-        if name == "lpv":
-            return self._lpv.z
-        if name == "kf":
-            return self._kf.z
-        return self._last_measured
+        if name == "measured":
+            return self._last_measured if self._bank.initialised else None
+        return self._bank.depth(name)
 
-    def _track_frame(
+    def _finish_burst(self) -> Measurement | None:
+        """Fit the pending burst; an accepted one is applied at the next tracking frame."""
+        m = self._bursts.finish(self._log_size_ratios, self._depth(self.config.best))
+        if m is not None and m.accepted:
+            self._pending = m
+            self._pending_t0 = self._bursts.last_t_first
+        return m
+
+    def _frame_estimate(
         self, frame: Frame, tag: FrameTag, obs: BoundaryObservation
     ) -> tuple[Estimate, Measurement | None]:
-        assert tag.focus_counts is not None
+        """Step every estimator to this frame with its size; a tracking frame (the burst's
+        compensation wants the sizes after it) also fits the pending burst and applies it."""
         cfg = self.config
         t = frame.t
-        f_img = self._image_distance_mm(tag.focus_counts)
-        s = obs.r_px * self.lens.pixel_pitch_mm / f_img  # = R / z
-        rho: float | None = None
         if self._prev is not None and t - self._prev[0] > cfg.max_gap_s:
             self._reset_filters_keep_tracking()
+        if tag.focus_counts is not None:
+            self._f_img = self._image_distance_mm(tag.focus_counts)
+        # A transit frame's focus setting is unknown: the last known one's image distance (the
+        # focal length itself under the default pinhole magnification).
+        f_img = self._f_img if self._f_img is not None else self.lens.focal_length_mm
         dt = 0.0 if self._prev is None else t - self._prev[0]
-        ratio = 1.0 if self._prev is None else self._prev[1] / s
-        if dt > 0:
-            rho = math.log(1.0 / ratio) / dt
-        _, sdot = self._diff.update(s, dt)
-        self._diff_rate = sdot / s if dt > 0 else None  # ρ̂ = ṡ/s, filtered (plan lead only)
+        s_meas = obs.r_px * self.lens.pixel_pitch_mm / f_img  # = R / z
+        if self._prev is not None and dt > 0 and not self._size_usable(obs, tag.role, s_meas, dt):
+            # No size from this frame (too blurred, or off the track: _size_usable): the size
+            # is held, and the next measured size telescopes the ratio over the gap.
+            s = self._prev[1]  # held: extrapolating on the rate drifted (11 % on start-up)
+            sdot = 0.0
+        else:
+            s = s_meas
+            self._good_t = t
+            _, sdot = self._diff.update(s, dt)
+            self._diff_rate = sdot / s if dt > 0 else None  # ρ̂ = ṡ/s, filtered
+            self._sizes.add(t, s)
+        rho: float | None = None
+        if self._prev is not None and dt > 0:
+            rho = math.log(s / self._prev[1]) / dt
         self._last_measured = None
         measured_t: float | None = None
-        done = self._finish_burst((t, s))
-        if self._initialised and dt > 0:
-            self._step_filters(dt, s, sdot, rho if rho is not None else 0.0, ratio)
+        done = self._finish_burst() if tag.role == "track" else None
+        bank = self._bank
+        d = self._size_offset()  # the estimators see the size without the offset
+        if bank.initialised and self._prev is not None and dt > 0:
+            bank.predict(dt, s - d, self._prev[1] - d, sdot, rho if rho is not None else 0.0)
         pending, self._pending = self._pending, None
         if pending is not None and pending.z_m is not None and pending.sigma_m is not None:
-            # the fit's σ (cost noise) and the parabola model's error at the vertex's offset
-            sigma_z = math.hypot(
-                pending.sigma_m,
-                abs(self.lens.dz_dv(pending.v_hat_mm))
-                * model_sigma_v_mm(pending.v_mm, pending.v_hat_mm, cfg.focus_measure),
-            )
-            s_b = self._size_at(pending.t + cfg.measurement_time_offset_s, t, s)
-            # the lean τ̂ of the vertex, estimated online on the size invariant (noise.py)
-            rate = self._diff_rate or 0.0
-            tau = self._unc.observe_size(
-                math.log(pending.z_m * s_b), rate, sigma_z / pending.z_m, pending.frame_indices
-            )
-            s_b *= math.exp(rate * tau)
-            size_m = pending.z_m * s_b
-            self._size_meas = size_m
+            s_b = self._size_at(pending.t + cfg.measurement_time_offset_s, self._pending_t0, s)
+            bank.correct(pending, s_b - d, s - d, self._diff_rate or 0.0)
+            if self._offset is not None:
+                self._offset.add(pending.z_m, pending.sigma_m, s_b)
             self._last_measured = pending.z_m
             measured_t = pending.t
-            y_now = size_m / s
-            sigma_now = sigma_z * y_now / pending.z_m
-            self._n_accepted += 1
-            if self._n_accepted <= cfg.cf2_size_bursts and cfg.cf2_nominal_size_m is None:
-                n = self._n_accepted
-                prev_size = self._cf2_size if self._cf2_size is not None else size_m
-                self._cf2_size = prev_size + (size_m - prev_size) / n  # running mean
-            if not self._initialised:
-                self._kf.reset(y_now, max(sigma_now, 1e-3))
-                self._unc.start(max(sigma_now, 1e-3), pending.frame_indices)
-                self._initialised = True
-            else:
-                # the noise the KF is told is adapted from its innovations (noise.py)
-                innov = y_now - (self._kf.z or y_now)
-                kf_sigma = self._unc.measurement(
-                    innov, sigma_now, self._kf.p, pending.frame_indices
-                )
-                self._kf.update(y_now, kf_sigma)
-            if self._n_accepted <= cfg.warmup_bursts:
-                self._hand_over(y_now)
         self._prev = (t, s)
         estimate = self._make_estimate(
-            frame, tag, obs, s=s, rho=rho, measured_t=measured_t, f_img=f_img
+            frame, tag, obs, s=s - d, rho=rho, measured_t=measured_t, f_img=f_img
         )
         return estimate, done
 
-    def _log_size_ratios(
-        self, times: list[float], t_mid: float, after: tuple[float, float] | None
-    ) -> list[float] | None:
-        """ln(s(t_i)/s(t_mid)) for burst frames, ln-interpolated between the tracking frames
-        around the burst; None when those are not both known (no compensation then)."""
-        if not self.config.compensate_burst_motion or after is None or self._prev is None:
+    def _size_offset(self) -> float:
+        """The size offset d = δ p/F removed from every size (0 without the offset state)."""
+        est = None if self._offset is None else self._offset.estimate()
+        return 0.0 if est is None else est[0]
+
+    def _on_size_jump(self, obs: BoundaryObservation, jump_ln: float) -> None:
+        """A depth jump: nothing is interpolated across it (bursts, transport, the rate)."""
+        logger.info("size jump of %+.1f %% (r %.1f px): no burst across", 100 * jump_ln, obs.r_px)
+        reason = "depth jump during the burst"
+        self._bursts.reject_pending(reason)
+        if self._pending is not None:  # fitted before the jump, transported after it
+            self._bursts.rejections[reason] += 1
+            self._pending = None
+        self._bursts.reset()
+        self._sizes.clear()
+        self._diff = Differentiator(self.config.differentiator_omega)
+
+    def _size_usable(self, obs: BoundaryObservation, role: str, s: float, dt: float) -> bool:
+        """Whether the frame's size ``s`` is used.
+
+        Not when its edge profile (``edge_sigma_px``, the log-parabola width of the gradient
+        peak) does not fit ``SIZE_EDGE_WIDTHS`` times within the normal lines, where the
+        curvature correction of r fails (docs/estimation.md §11). Not when ``ln s`` is off the
+        filtered rate's prediction by more than ``size_jump_ln`` on a burst or transit frame
+        (blurred frames of the brackets were 3-35 % off); on a tracking frame (at the best focus
+        of a known depth) that is a depth jump (:meth:`_on_size_jump`), and the size is used.
+        """
+        w = obs.edge_sigma_px
+        if math.isfinite(w) and SIZE_EDGE_WIDTHS * w > self.config.search_px:
+            return False
+        if self._prev is None or self._diff_rate is None or self._good_t is None:
+            return True
+        gap = self._prev[0] + dt - self._good_t  # since the last measured size
+        if gap > SIZE_JUMP_MAX_GAP_S:
+            return True  # the rate's prediction is too uncertain to call a jump
+        off = math.log(s) - (math.log(self._prev[1]) + self._diff_rate * gap)
+        if abs(off) <= self.config.size_jump_ln:
+            return True
+        if role != "track" or not self._bank.initialised:
+            return False
+        self._on_size_jump(obs, off)
+        return True
+
+    def _log_size_ratios(self, times: list[float], t_mid: float) -> list[float] | None:
+        """ln(s(t_i)/s(t_mid)) for burst frames, from the line through the sizes of the frames
+        from the burst's first to now (:meth:`SizeHistory.line`); None without two of them (no
+        compensation then)."""
+        if not self.config.compensate_burst_motion:
             return None
-        (t0, s0), (t1, s1) = self._prev, after
-        if not t0 < t1 or t1 - t0 > self.config.max_gap_s:
+        line = self._sizes.line(min(times), math.inf)
+        if line is None:
             return None
-        rate = math.log(s1 / s0) / (t1 - t0)
-        return [rate * (ti - t_mid) for ti in times]
+        slope = line[2]
+        return [slope * (ti - t_mid) for ti in times]
 
-    def _size_at(self, t_b: float, t_now: float, s_now: float) -> float:
-        """Normalised size at the burst mid-time, ln-interpolated between tracking frames."""
-        if not self.config.transport_measurements or self._prev is None:
+    def _size_at(self, t_b: float, t_first: float | None, s_now: float) -> float:
+        """Normalised size at the burst time ``t_b`` from the line through the sizes of the
+        frames from the burst's first (``t_first``) to now."""
+        if not self.config.transport_measurements or t_first is None:
             return s_now
-        t0, s0 = self._prev
-        if t_now <= t0:
+        line = self._sizes.line(t_first, math.inf)
+        if line is None:
             return s_now
-        # A rolling burst's mid-time can precede the last tracking frame (its middle frame) a
-        # little: ln-extrapolate back by at most one step.
-        w = min(max((t_b - t0) / (t_now - t0), -1.0), 1.0)
-        return math.exp((1 - w) * math.log(s0) + w * math.log(s_now))
-
-    def _reset_filters_keep_tracking(self) -> None:
-        cfg = self.config
-        self._cf1 = CF1(cfg.cf1_k)
-        self._cf2 = CF2(*self.cf2_gains)
-        self._lpv = LPVObserver(self.lpv_gains)
-        self._kf = DepthKF(cfg.kf_noise, self.kf_trace)
-        self._diff = Differentiator(cfg.differentiator_omega)
-        self._unc = Uncertainty(
-            cfg.kf_noise,
-            cfg.noise_adapt,
-            cf1_k=cfg.cf1_k,
-            cf2_gains=self.cf2_gains,
-            lpv=self.lpv_gains,
-        )
-        self._vel_cam = VelocityEstimator(cfg.differentiator_omega / 3)
-        self._vel_world = VelocityEstimator(cfg.differentiator_omega / 3)
-        self._size_meas = None  # R_m of the last accepted burst
-        self._cf2_size = cfg.cf2_nominal_size_m
-        self._n_accepted = 0
-        self._pending = None
-        self._prev = None  # (t, s) of the last tracking frame
-        self._initialised = False
-        self._last_measured = None
-        self._prev_pos_t = None
-        self._diff_rate = None
-
-    def _hand_over(self, y_now: float) -> None:
-        """Seed the fixed-gain filters from the KF's estimate (start-up, see ``warmup_bursts``)."""
-        z0 = self._kf.z if self._kf.z is not None else y_now
-        b0 = self._kf.b if self._kf.b is not None else 0.0
-        self._cf1.reset(z0)
-        self._cf2.reset(z0)
-        self._lpv.reset(z0, b0)
-        self._unc.hand_over()
-
-    def _step_filters(self, dt: float, s: float, sdot: float, rho: float, ratio: float) -> None:
-        assert self._size_meas is not None
-        assert self._prev is not None
-        # the last size measurement seen at the image size: y(τ) = R_m / s(τ) = y0 e^{−ρτ}
-        y0 = self._size_meas / self._prev[1]
-        lam = -rho
-        if self.config.psi_source == "step":
-            inv_rate = (1.0 / s - 1.0 / self._prev[1]) / dt  # d(1/s)/dt over the step, exact
-        else:
-            inv_rate = -sdot / (s * s)
-        if self._known_size is not None:
-            self._cf1.step(dt, y0, inv_rate * self._known_size, lam)
-        cf2_size = self._cf2_size if self._cf2_size is not None else self._size_meas
-        self._cf2.step(dt, y0, inv_rate * cf2_size, lam)
-        self._lpv.step(dt, rho, y0, lam)
-        self._kf.predict(ratio, dt)
-        self._unc.predict(dt, ratio, rho, self._kf.z or y0)
+        t_ref, ln_ref, slope = line
+        return math.exp(ln_ref + slope * (t_b - t_ref))
 
     def _make_estimate(
         self,
@@ -730,8 +531,9 @@ class Pipeline:
         f_img: float,
     ) -> Estimate:
         cfg = self.config
+        bank = self._bank
         depth: dict[str, float | None] = {name: self._depth(name) for name in ESTIMATORS}
-        sigma_by = self._unc.sigmas(depth)
+        sigma_by = bank.sigmas(depth)
         z = depth[cfg.best]
         h, w = frame.image.shape[:2]
         dt = 0.0 if self._prev_pos_t is None else frame.t - self._prev_pos_t
@@ -751,8 +553,8 @@ class Pipeline:
             best=cfg.best,
             z_m=z,
             sigma_m=sigma_by[cfg.best] if z is not None else None,
-            beta_m_s=self._cf2.beta if self._initialised else None,
-            lpv_b_m_s=self._lpv.b if self._initialised else None,
+            beta_m_s=bank.cf2.beta if bank.initialised else None,
+            lpv_b_m_s=bank.lpv.b if bank.initialised else None,
             size_m=None if z is None else z * s,
             r_px=obs.r_px,
             rho=rho,

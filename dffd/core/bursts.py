@@ -1,0 +1,247 @@
+"""Burst assembly: the focus cost of burst frames, gathered into bursts and fitted (pure).
+
+A burst is three (or more) frames at known focus settings bracketing the sharp setting. Each
+burst frame's focus cost (``focus_measure``: the paper's cost (2), or the edge second moment) is
+taken along the contour's normals; when the pipeline closes the burst (at the next tracking frame,
+or when another burst id arrives) the parabola is fitted, each setting first shifted by the
+target's motion during the burst, and a :class:`~dffd.core.outputs.Measurement` is made.
+
+*Rolling* bursts (the scheduler's triangle lo, mid, hi, mid, lo, …) tag each end frame alone
+(the last slot, none before it): such a frame closes a burst made of the previous end on the
+other side of the bracket, the last tracking frame between the two (at the middle: tracking
+frames carry their cost too) and itself. A burst left with fewer than three frames with a cost is
+not emitted; it is counted in :attr:`BurstAssembler.rejections` with its reason. A burst one of
+whose frames has no edge-moment cost (its blur overflows the normal lines: the first, full-range
+brackets) is fitted with (2) on all its frames and counted in
+:attr:`BurstAssembler.measure_fallbacks`. See docs/estimation.md §1.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from dffd.core.contour import BoundaryObservation
+from dffd.core.focus import FitConfig, fit_burst, frame_cost
+from dffd.core.lens import Lens
+from dffd.core.outputs import Measurement
+from dffd.literals import FocusMeasure
+
+__all__ = ["V_CACHE_ENTRIES", "BurstAssembler", "BurstSample", "FocusSettings"]
+
+logger = logging.getLogger(__name__)
+
+# Memoised focus settings (lens table look-ups): the counts of a session span a few thousand
+# values at most; the cache is emptied when it reaches this size.
+V_CACHE_ENTRIES = 4096
+
+# ln(s(t_i)/s(t_mid)) for a burst's frame times and mid-time, or None (no compensation).
+LogSizeRatios = Callable[[list[float], float], "list[float] | None"]
+
+
+class FocusSettings:
+    """``lens.v_from_counts``, memoised: a PCHIP evaluation costs ~20 µs, and the scheduler
+    returns to the same few focus settings frame after frame."""
+
+    def __init__(self, lens: Lens) -> None:
+        self.lens = lens
+        self._v: dict[int, float] = {}
+
+    def v_mm(self, counts: int) -> float:
+        """Lens-to-sensor distance (mm) at the focus setting ``counts``."""
+        v = self._v.get(counts)
+        if v is None:
+            if len(self._v) >= V_CACHE_ENTRIES:
+                self._v.clear()
+            v = self._v[counts] = self.lens.v_from_counts(counts)
+        return v
+
+
+@dataclass(slots=True)
+class BurstSample:
+    """One frame's focus cost at a known setting."""
+
+    index: int
+    t: float
+    counts: int
+    v_mm: float
+    g: float  # cost of the configured measure (NaN: none on this frame)
+    sigma_g: float
+    peak: tuple[float, float] | None  # cost (2) when the measure is another one (its fallback)
+
+
+class BurstAssembler:
+    """Collects burst frames' costs into bursts and fits them (see the module docstring)."""
+
+    def __init__(
+        self,
+        settings: FocusSettings,
+        *,
+        fit: FitConfig,
+        focus_measure: FocusMeasure,
+        trim_fraction: float,
+        burst_size: int,
+        rolling_max_span_s: float,
+    ) -> None:
+        self.settings = settings
+        self.lens = settings.lens
+        self.fit = fit
+        self.focus_measure: FocusMeasure = focus_measure
+        self.trim_fraction = trim_fraction
+        self.burst_size = burst_size
+        self.rolling_max_span_s = rolling_max_span_s
+        # Bursts not emitted (fewer than three frames), by reason.
+        self.rejections: Counter[str] = Counter()
+        # Bursts fitted with cost (2) because a frame had no cost of the configured measure.
+        self.measure_fallbacks = 0
+        self._samples: list[BurstSample] = []
+        self._id: int | None = None
+        self._last_end: BurstSample | None = None  # the last rolling end (the next one's slot 0)
+        self._last_mid: BurstSample | None = None  # the last tracking frame's cost sample
+        # time of the first frame of the last burst fitted (the sizes from there on transport it)
+        self.last_t_first: float | None = None
+
+    @property
+    def pending_id(self) -> int | None:
+        """Id of the burst being gathered, or None."""
+        return self._id
+
+    def reset(self) -> None:
+        """Drop the pending burst and the rolling sequence (a new target, a lost one)."""
+        self.discard()
+        self._last_end = None
+        self._last_mid = None
+
+    def discard(self) -> None:
+        """Drop the pending burst."""
+        self._samples = []
+        self._id = None
+
+    def add(self, index: int, t: float, counts: int, burst: tuple[int, int] | None,
+            obs: BoundaryObservation) -> None:  # fmt: skip
+        """A burst frame (``burst`` = (id, slot) from its tag) at focus ``counts``."""
+        bid, slot = burst if burst is not None else (-1, 0)
+        sample = self.cost_sample(index, t, counts, obs)
+        if self._id is None and slot == self.burst_size - 1 and slot > 0:
+            self._add_rolling_end(bid, sample)
+            return
+        if self._id is None:
+            self._id = bid
+        if sample is not None:
+            self._samples.append(sample)
+
+    def set_middle(self, index: int, t: float, counts: int, obs: BoundaryObservation) -> None:
+        """A tracking frame: at the best focus, the middle of the next rolling burst."""
+        self._last_mid = self.cost_sample(index, t, counts, obs)
+
+    def cost_sample(
+        self, index: int, t: float, counts: int, obs: BoundaryObservation
+    ) -> BurstSample | None:
+        """The frame's cost of the configured measure (and of (2) as its fallback), or None."""
+        trim = self.trim_fraction
+        measure = self.focus_measure
+        cost = frame_cost(obs, measure, trim)
+        peak = None if measure == "peak_gradient" else frame_cost(obs, "peak_gradient", trim)
+        if cost is None and peak is None:
+            return None
+        g, sigma_g = (math.nan, math.nan) if cost is None else cost
+        return BurstSample(index, t, counts, self.settings.v_mm(counts), g, sigma_g, peak)
+
+    def finish(
+        self, log_size_ratios: LogSizeRatios, z_fallback: float | None
+    ) -> Measurement | None:
+        """Fit the pending burst, or None when there is none or it is not a burst (counted).
+
+        ``log_size_ratios`` gives each frame's size relative to the mid-time (the target's motion
+        during the burst); ``z_fallback`` is the depth the compensation is computed at when the
+        uncompensated fit is rejected.
+        """
+        if self._id is None:
+            return None
+        samples, bid = self._samples, self._id
+        self.discard()
+        if len(samples) < 3:
+            # Not a burst (a claimed frame was dropped, the contour failed on a slot, the link
+            # cut it short): nothing to fit and nothing the ``…/measurement`` schema accepts.
+            self._reject(bid, f"{len(samples)} of 3 frames with a focus cost")
+            return None
+        self.last_t_first = min(s.t for s in samples)
+        t_sum = 0.0
+        for s in samples:  # sequential sum (as np.mean of a few values), no array
+            t_sum += s.t
+        t_mid = t_sum / len(samples)
+        if any(math.isnan(s.g) for s in samples):
+            # one frame's blur overflowed the edge-moment window: the whole burst on cost (2)
+            if any(s.peak is None for s in samples):
+                self._reject(bid, "a frame without a focus cost")
+                return None
+            samples = [replace(s, g=s.peak[0], sigma_g=s.peak[1]) for s in samples if s.peak]
+            self.measure_fallbacks += 1
+        v = [s.v_mm for s in samples]
+        g = [s.g for s in samples]
+        sg = [s.sigma_g for s in samples]
+        fit = fit_burst(v, g, sg, self.lens, self.fit)
+        log_ratio = log_size_ratios([s.t for s in samples], t_mid)
+        if log_ratio is not None:
+            z_ref = fit.z_m if fit.accepted else z_fallback
+            for _ in range(2):  # the shift depends (weakly) on the depth it is computed at
+                if z_ref is None or not z_ref > 0:
+                    break
+                v_ref = self.lens.v_from_depth(z_ref)
+                # z_i = z s(t_mid)/s(t_i): the sharp setting at frame i is v(z_i)
+                v_comp = [
+                    vi - (self.lens.v_from_depth(z_ref * math.exp(-lr)) - v_ref)
+                    for vi, lr in zip(v, log_ratio, strict=True)
+                ]
+                fit = fit_burst(v_comp, g, sg, self.lens, self.fit)
+                z_ref = fit.z_m if fit.accepted else None
+        if not fit.accepted:
+            logger.debug("burst %d rejected: %s", bid, fit.reason)
+        return Measurement(
+            burst_id=bid,
+            t=t_mid,
+            frame_indices=tuple(s.index for s in samples),
+            focus_counts=tuple(s.counts for s in samples),
+            v_mm=tuple(s.v_mm for s in samples),
+            costs=tuple(s.g for s in samples),
+            cost_sigmas=tuple(s.sigma_g for s in samples),
+            alpha=fit.alpha,
+            v_hat_mm=fit.v_hat_mm,
+            residual=fit.residual,
+            accepted=fit.accepted,
+            reason=fit.reason,
+            z_m=fit.z_m,
+            sigma_m=fit.sigma_m,
+        )
+
+    def reject_pending(self, reason: str) -> None:
+        """Drop the pending burst and count it with ``reason`` (e.g. a depth jump inside it)."""
+        if self._id is not None:
+            self._reject(self._id, reason)
+            self.discard()
+
+    def _add_rolling_end(self, bid: int, sample: BurstSample | None) -> None:
+        """A last slot with none before it: a rolling end; close a burst with the previous end
+        and the tracking frame between them (see the module docstring)."""
+        prev, mid = self._last_end, self._last_mid
+        self._last_end = sample
+        if sample is None:
+            return
+        if (
+            prev is None
+            or mid is None
+            or not prev.t < mid.t < sample.t
+            or sample.t - prev.t > self.rolling_max_span_s
+            or (prev.counts - mid.counts) * (sample.counts - mid.counts) >= 0
+        ):
+            logger.debug("rolling burst %d opens a sequence (no previous end to close)", bid)
+            return
+        self._samples = [prev, mid, sample]
+        self._id = bid
+
+    def _reject(self, bid: int, reason: str) -> None:
+        self.rejections[reason] += 1
+        logger.debug("burst %d rejected: %s", bid, reason)
