@@ -10,22 +10,20 @@ until SIGTERM or SIGINT, then exits 0.
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
 import logging
-import signal
 import sys
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
-from drivers.sim.device import DeviceConfig
-from drivers.sim.faults import Faults, FaultSpecError
-from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.models import SIM_MODELS, sim_model
-from drivers.sim.net_server import SimTcpServer
-from drivers.sim.server import SimCameraServer
 
+# The device, the servers and asyncio are imported where they run: `dffd sim-camera --help` must
+# parse its arguments without them (≤ 0.3 s, like every other subcommand's --help).
 if TYPE_CHECKING:
+    import contextlib
+
+    from drivers.sim.device import DeviceConfig
+    from drivers.sim.faults import Faults
     from drivers.sim.rig import SimCamera
 
 logger = logging.getLogger(__name__)
@@ -97,6 +95,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve until SIGTERM/SIGINT; return the exit code."""
+    import asyncio
+
+    from drivers.sim.device import DeviceConfig
+    from drivers.sim.faults import Faults, FaultSpecError
+
     try:
         faults = Faults(args.faults)
         config = DeviceConfig(
@@ -159,6 +162,12 @@ def run(args: argparse.Namespace) -> int:
 async def _serve(
     config: DeviceConfig, faults: Faults, link: str | None, *, video: tuple[str, int] | None
 ) -> int:
+    import asyncio
+    import contextlib
+    import signal
+
+    from drivers.sim.server import SimCameraServer
+
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGTERM, signal.SIGINT):
@@ -207,6 +216,13 @@ async def _serve_net(
     *,
     video: tuple[str, int] | None,
 ) -> int:
+    import asyncio
+    import contextlib
+    import signal
+
+    from drivers.sim.ip_server import SimUdpServer
+    from drivers.sim.net_server import SimTcpServer
+
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGTERM, signal.SIGINT):
