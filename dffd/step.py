@@ -29,6 +29,7 @@ from dffd.core.tracking3d import (
     Tracker3DBank,
     TrackerKind,
     cartesian_measurement,
+    direction_rate_deg_s,
 )
 
 if TYPE_CHECKING:
@@ -55,6 +56,8 @@ class Feedback:
     centroid_px: tuple[float, float] | None  # the target's image centroid, if found
     pan_deg: float  # the head's pan/tilt during the exposure, from the tag
     tilt_deg: float
+    # The published 3D track's pan/tilt rate of the target's direction (deg/s), if a track.
+    track_rate_deg_s: tuple[float, float] | None = None
 
     def apply(self, scheduler: Scheduler) -> None:
         """Report this feedback to ``scheduler``."""
@@ -65,6 +68,7 @@ class Feedback:
             centroid_px=self.centroid_px,
             pan_deg=self.pan_deg,
             tilt_deg=self.tilt_deg,
+            track_rate_deg_s=self.track_rate_deg_s,
         )
 
 
@@ -128,8 +132,10 @@ class CoreStep:
             sigma = None if pred is None else pred[1]
             if tag.focus_counts is not None:
                 plan = pipeline.plan_burst(tag.focus_counts)
-        feedback = Feedback(frame.t, sigma, plan, centroid, tag.pan_deg, tag.tilt_deg)
         tracks = self._track(frame, out)
+        published = tracks.get(self.trackers.kinds[0])
+        rate = None if published is None else direction_rate_deg_s(published)
+        feedback = Feedback(frame.t, sigma, plan, centroid, tag.pan_deg, tag.tilt_deg, rate)
         return StepResult(frame.index, tag, out, feedback, tracks, self.trackers.kinds[0])
 
     def _track(self, frame: Frame, out: PipelineOutput) -> dict[str, Track3DEstimate]:

@@ -34,6 +34,7 @@ from dffd.core.tracking3d import (
     _size_update,
     _unit_update,
     cartesian_measurement,
+    direction_rate_deg_s,
     imm_mix,
     markov_matrix,
     mmae_probabilities,
@@ -544,3 +545,19 @@ def test_size_track_starts_on_a_burst_learns_the_size_and_keeps_it_across_a_gap(
     assert again.velocity_m_s == (0.0, 0.0, 0.0)
     tracker.reset()  # a new target: no size known
     assert tracker.step_size(14.0, unit_size_point(meas(4.0), CAM)) is None
+
+
+def test_direction_rate_is_the_derivative_of_the_centring_pan_tilt() -> None:
+    p, v = np.array([1.2, -0.4, 5.0]), np.array([0.3, 0.05, -0.2])
+
+    def pan_tilt(q: FloatArray) -> FloatArray:
+        return np.degrees([math.atan2(q[0], q[2]), math.atan2(-q[1], math.hypot(q[0], q[2]))])
+
+    # the direction that centres p: the world rotation at (pan, tilt) looks along p
+    pan, tilt = pan_tilt(p)
+    axis = world_rotation(float(pan), float(tilt)) @ np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(axis, p / np.linalg.norm(p), atol=1e-12)
+    h = 1e-6
+    expected = (pan_tilt(p + v * h) - pan_tilt(p - v * h)) / (2 * h)
+    est = Track3DEstimate(0.0, tuple(p), tuple(v), (0.0, 0.0, 0.0), 0.0, (0.0, 0.0, 0.0))  # type: ignore[arg-type]
+    np.testing.assert_allclose(direction_rate_deg_s(est), expected, rtol=1e-6)

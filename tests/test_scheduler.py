@@ -581,6 +581,34 @@ def test_feedforward_from_the_first_two_centroids() -> None:
     assert drives[0].pan_rate_deg_s >= 7.0
 
 
+@pytest.mark.parametrize("use_track", [False, True])
+def test_feedforward_from_the_3d_tracker_when_switched_on(use_track: bool) -> None:
+    """A still centroid but a tracker saying 7°/s: the head runs 7°/s only with the switch on."""
+    cfg = replace(
+        PT,
+        focal_length_mm=31.0,
+        pixel_pitch_mm=0.005,
+        pan_tilt_poll_interval_s=100.0,
+        pan_tilt_track_feedforward=use_track,
+    )
+    s = Scheduler(cfg)
+    s.next_actions(0.0)
+    s.on_pan_tilt_position(0.0, 0.0, 0.0)
+    s.on_pan_tilt_done(0.0)
+    for k in range(3):
+        s.on_estimate(
+            0.1 + k / 30.0, sigma_m=None, plan=None, centroid_px=(319.5, 239.5),
+            pan_deg=0.0, tilt_deg=0.0, track_rate_deg_s=(7.0, 0.0),
+        )  # fmt: skip
+    drives = [a for a in s.next_actions(0.2) if isinstance(a, PanTiltDrive)]
+    if use_track:
+        assert len(drives) == 1
+        assert drives[0].pan_rate_deg_s >= 7.0
+        assert drives[0].tilt_speed == 0
+    else:
+        assert drives == []  # the centroid does not move: nothing to follow
+
+
 def test_bursts_wait_for_a_stable_contour() -> None:
     cfg = replace(BASE, acquire_stable_frames=3)
     h = Harness(cfg, centroid=None)

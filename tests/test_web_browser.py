@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import shutil
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -106,6 +107,22 @@ async def test_dashboard_video_plot_and_roi_drag(
         "state tracking", lambda: browser.find_element(By.ID, "state").text == "TRACKING"
     )
     await asyncio.to_thread(browser.save_screenshot, str(tmp_path / "dashboard.png"))
+
+    # The 3D track: acceleration, angular speed, position σ and the model probabilities render.
+    def text(element_id: str) -> str:
+        return str(browser.find_element(By.ID, element_id).text)
+
+    await wait_for("the 3D track", lambda: text("track-sigma") != "–")
+    numbers = r"-?\d+\.\d+"
+    assert re.fullmatch(rf"{numbers}, {numbers}, {numbers}", text("track-acc"))
+    assert re.fullmatch(rf"{numbers} rad/s \({numbers}°/s\)", text("track-omega"))
+    sigma_mm = [float(v) for v in text("track-sigma").split(", ")]
+    assert len(sigma_mm) == 3
+    assert all(0.0 < v < 1000.0 for v in sigma_mm)
+    bars = browser.find_elements(By.CSS_SELECTOR, "#track-probs .prob")
+    assert [b.get_attribute("data-model") for b in bars] == ["cv", "ca", "ct"]
+    probs = [float(b.find_element(By.CLASS_NAME, "value").text) for b in bars]
+    assert sum(probs) == pytest.approx(1.0, abs=3e-3)  # three rounded to 3 digits
 
     # Drag a box around the disc (centre of the 320×240 frame, ~80 px wide at 5 m).
     canvas = browser.find_element(By.ID, "video")

@@ -23,9 +23,11 @@ from dffd.config import DffdConfig
 from dffd.core.pipeline import Measurement as CoreMeasurement
 from dffd.core.pipeline import Pipeline, PipelineOutput
 from dffd.core.synthetic import DiscScene, StreamStep, closed_loop, synthetic_lens
+from dffd.core.tracking3d import Track3DEstimate
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
 from dffd.mqtt.topics import Topics
+from dffd.step import CoreStep
 from dffd.web.interface import (
     DashboardFeed,
     EstimatePoint,
@@ -55,6 +57,7 @@ class SyntheticDaemon:
         self.lens = synthetic_lens()
         self.config = replace(pipeline_config(DffdConfig()), search_px=8)
         self.pipeline = Pipeline(self.config, self.lens)
+        self.core = CoreStep(self.pipeline)  # the 3D tracker on top, as the daemon runs it
         self.scene = DiscScene(width=WIDTH, height=HEIGHT)
         self.feed = DashboardFeed()
         self.metrics = Metrics(self.snapshot)
@@ -157,13 +160,11 @@ class SyntheticDaemon:
                 return
             c0 = time.thread_time()
             with self.lock:
-                out = self.pipeline.process(step.frame, step.tag)
-                plan = None
-                if self.pipeline.state == "tracking" and step.tag.focus_counts is not None:
-                    plan = self.pipeline.plan_burst(step.tag.focus_counts)
+                res = self.core.step(step.frame, step.tag)
+            out, plan, track = res.output, res.feedback.plan, res.track
             cpu = time.thread_time() - c0
             exposed = time.monotonic()
-            self.loop.call_soon_threadsafe(self._on_result, step, out, plan, cpu, exposed)
+            self.loop.call_soon_threadsafe(self._on_result, step, out, plan, track, cpu, exposed)
             # Pacing to the frame rate (a camera's clock), not waiting for a result.
             delay = t0 + (step.frame.index + 1) / FPS - time.monotonic()
             if self.stop_event.wait(max(0.0, delay)):
@@ -174,6 +175,7 @@ class SyntheticDaemon:
         step: StreamStep,
         out: PipelineOutput,
         plan: tuple[int, int, int] | None,
+        track: Track3DEstimate | None,
         cpu_s: float,
         exposed: float,
     ) -> None:
@@ -222,7 +224,12 @@ class SyntheticDaemon:
                 sigma_m=_fin(est.sigma_m),
                 size_m=_fin(est.size_m),
                 r_px=_fin(est.r_px),
-                position_m=None,
+                position_m=track.position_m if track else None,
+                velocity_m_s=track.velocity_m_s if track else None,
+                acceleration_m_s2=track.acceleration_m_s2 if track else None,
+                angular_speed_rad_s=track.angular_speed_rad_s if track else None,
+                position_sigma_m=track.position_sigma_m if track else None,
+                model_probabilities=dict(track.model_probabilities) if track else None,
                 pan_deg=0.0,
                 tilt_deg=0.0,
             )

@@ -57,6 +57,10 @@ class SchedulerConfig:
     pan_tilt_gain_per_s: float  # commanded deg/s per degree of error
     pan_tilt_feedforward: bool  # add the target's filtered angular velocity
     pan_tilt_velocity_tau_s: float = 0.3  # time constant of that velocity filter
+    # Feed-forward from the 3D tracker (docs/tracking3d.md, "Pan/tilt feed-forward"): the
+    # target's angular velocity is the tracker's (its predicted direction's rate) instead of the
+    # filtered centroid differences, whenever the tracker has a fresh track. Off by default.
+    pan_tilt_track_feedforward: bool = False
     pan_tilt_lost_s: float  # no centroid for this long: the target is lost → search
     # Search after a loss: keep driving towards the target's extrapolated direction (its last
     # direction plus its filtered angular velocity times the time since) for this long, then

@@ -234,13 +234,18 @@ class Scheduler:
         centroid_px: tuple[float, float] | None,
         pan_deg: float | None = None,
         tilt_deg: float | None = None,
+        track_rate_deg_s: tuple[float, float] | None = None,
     ) -> None:
         """Feedback from the core for the frame exposed at ``t``.
 
         ``plan``: the next burst's settings (``Pipeline.plan_burst``), None while the core has no
         depth to bracket (no bursts then). ``centroid_px``: the target's image centroid, None when
         lost (pan/tilt stops). ``pan_deg``/``tilt_deg``: the tag's pan/tilt for that exposure.
+        ``track_rate_deg_s``: the 3D tracker's pan/tilt rate of the target's direction at ``t``
+        (feed-forward when ``pan_tilt_track_feedforward``), None without a track.
         """
+        if track_rate_deg_s is not None:
+            self._pt.on_track_rate(t, track_rate_deg_s)
         self._sigma = sigma_m
         need = self.config.acquire_stable_frames
         if centroid_px is not None:

@@ -86,6 +86,8 @@ class PanTiltHead:
         self._return_pending = False
         self._searching = False
         self._velocity_samples = 0
+        self._track_rate: tuple[float, float] | None = None  # the 3D tracker's, deg/s
+        self._track_rate_t = -math.inf
         self._eval_due = math.inf
         self._last_focus_cmd = -math.inf
         self._last_step = -math.inf
@@ -185,6 +187,11 @@ class PanTiltHead:
         self._return_pending = False
         self._eval_due = min(self._eval_due, self._last_cmd_t + self._min_interval())
 
+    def on_track_rate(self, t: float, rate_deg_s: tuple[float, float]) -> None:
+        """The 3D tracker's pan/tilt rate of the target's direction at ``t`` (deg/s)."""
+        self._track_rate = rate_deg_s
+        self._track_rate_t = t
+
     def release(self) -> None:
         """Stop following: one stop, then nothing until a new centroid (no search)."""
         seg = self._seg
@@ -221,8 +228,24 @@ class PanTiltHead:
         self._return_pending = True
         self._eval_due = self._last_cmd_t + self._min_interval()
 
+    def _feedforward(self) -> tuple[float, float]:
+        """The angular velocity fed forward: the tracker's when enabled and fresh (no older
+        than the target's last centroid by more than ``MAX_VELOCITY_GAP_S``), else ω̂."""
+        cfg = self.config
+        if not cfg.pan_tilt_feedforward:
+            return 0.0, 0.0
+        rate = self._track_rate
+        if (
+            cfg.pan_tilt_track_feedforward
+            and rate is not None
+            and self._target_t - self._track_rate_t <= MAX_VELOCITY_GAP_S
+        ):
+            return rate
+        return self._velocity
+
     def _forget_target(self) -> None:
         self._target = None
+        self._track_rate = None
         self._velocity = (0.0, 0.0)
         self._velocity_samples = 0
         self._searching = False
@@ -289,7 +312,7 @@ class PanTiltHead:
         if self._target is None:
             return None, idle
         pan_now, tilt_now = self.at(now)
-        ff = self._velocity if cfg.pan_tilt_feedforward else (0.0, 0.0)
+        ff = self._feedforward()
         # Extrapolate the target to now (bounded by the search horizon).
         ahead = min(max(0.0, now - self._target_t), cfg.pan_tilt_lost_s + cfg.pan_tilt_search_s)
         err_p = self._target[0] + ff[0] * ahead - pan_now

@@ -99,6 +99,13 @@ class EstimatePoint:
             "sigma": e.sigma_m,
             "d": e.depth_m.model_dump(),
             "truth": self.truth_z_m,
+            # The 3D tracker's (None without a track): world frame, docs/tracking3d.md.
+            "pos": e.position_m,
+            "vel": e.velocity_m_s,
+            "acc": e.acceleration_m_s2,
+            "omega": e.angular_speed_rad_s,
+            "pos_sigma": e.position_sigma_m,
+            "probs": e.model_probabilities,
         }
 
 

@@ -160,6 +160,7 @@ function connectEvents() {
     document.body.dataset.points = String(dash.points.length);
     drawPlots();
     showDepth();
+    showTrack();
   };
   ws.onclose = () => {
     $("state").textContent = "disconnected";
@@ -188,6 +189,32 @@ function showDepth() {
   }
   $("age").textContent = age === null || age === undefined
     ? "no estimate yet" : `last estimate ${fmt(age, 1)} s ago`;
+}
+
+function vec(v, scale = 1, digits = 3) {
+  return v ? v.map((c) => fmt(c * scale, digits)).join(", ") : "–";
+}
+
+// The 3D tracker's state of the newest estimate (docs/tracking3d.md); dashes without a track.
+function showTrack() {
+  const last = dash.points[dash.points.length - 1];
+  const has = Boolean(last && last.pos_sigma);
+  $("track-pos").textContent = has ? vec(last.pos) : "–";
+  $("track-vel").textContent = has ? vec(last.vel) : "–";
+  $("track-acc").textContent = has ? vec(last.acc) : "–";
+  $("track-omega").textContent = has && last.omega !== null
+    ? `${fmt(last.omega, 4)} rad/s (${fmt(last.omega * 180 / Math.PI, 2)}°/s)` : "–";
+  $("track-sigma").textContent = has ? vec(last.pos_sigma, 1000, 1) : "–";
+  const probs = $("track-probs");
+  probs.innerHTML = "";
+  if (!has || !last.probs) { probs.textContent = "–"; return; }
+  for (const [name, p] of Object.entries(last.probs)) {
+    const div = document.createElement("div");
+    div.className = "prob";
+    div.dataset.model = name;
+    div.innerHTML = `<span class="name">${name}</span>${meter(p, 1)}<span class="value">${fmt(p, 3)}</span>`;
+    probs.appendChild(div);
+  }
 }
 
 function row(name, html) { return `<tr><td>${name}</td><td>${html}</td></tr>`; }
