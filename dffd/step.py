@@ -132,14 +132,17 @@ class CoreStep:
             sigma = None if pred is None else pred[1]
             if tag.focus_counts is not None:
                 plan = pipeline.plan_burst(tag.focus_counts)
-        tracks = self._track(frame, out)
+        tracks = self._track(frame, tag, out)
         published = tracks.get(self.trackers.kinds[0])
         rate = None if published is None else direction_rate_deg_s(published)
         feedback = Feedback(frame.t, sigma, plan, centroid, tag.pan_deg, tag.tilt_deg, rate)
         return StepResult(frame.index, tag, out, feedback, tracks, self.trackers.kinds[0])
 
-    def _track(self, frame: Frame, out: PipelineOutput) -> dict[str, Track3DEstimate]:
-        """Step the 3D trackers on a frame with an estimate (a new target forgets the track)."""
+    def _track(
+        self, frame: Frame, tag: FrameTag, out: PipelineOutput
+    ) -> dict[str, Track3DEstimate]:
+        """Step the 3D trackers on a tracking frame with an estimate (a new target forgets the
+        track); other frames with an estimate get the tracks extrapolated to their time."""
         m = out.measurement
         if m is not None and m.accepted and m.z_m is not None and m.sigma_m is not None:
             # z_m is the depth at the burst's mid-time plus the pipeline's measured offset.
@@ -151,6 +154,10 @@ class CoreStep:
                 self.trackers.reset()  # released, or told to acquire: the next target is new
                 self._feed.reset()
             return {}
+        if tag.role != "track":
+            # Only a tracking frame (at the best focus) has an unbiased image size; elsewhere
+            # the tracks are carried to the frame's time without a filter step (cheap).
+            return self.trackers.extrapolate(est.t)
         if est.z_m is None or est.size_m is None or not est.z_m > 0.0:
             return self.trackers.step_size(est.t, None)  # no size yet: predict (if a track)
         # s = r·pitch/F of this frame; the pipeline publishes R̂ = ẑ s, so s = R̂/ẑ exactly.

@@ -33,6 +33,7 @@ from dffd.core.tracking3d import (
     Tracker3DConfig,
     _size_update,
     _unit_update,
+    _unit_update_all,
     cartesian_measurement,
     direction_rate_deg_s,
     imm_mix,
@@ -487,6 +488,18 @@ def test_unit_size_update_is_the_kalman_update_of_p_minus_r_m() -> None:
     assert got[2] == pytest.approx(ref[2], rel=1e-9)
 
 
+def test_batched_unit_update_equals_the_per_model_update() -> None:
+    (x0, p0), (x1, p1) = _random_state(6), _random_state(7)
+    m = np.array([-3.0, 1.0, 120.0])
+    sigma_m = np.diag([2.0, 2.0, 500.0]) * 1e-2
+    xs, ps, loglik = _unit_update_all(np.stack([x0, x1]), np.stack([p0, p1]), m, sigma_m)
+    for j, (x, p) in enumerate(((x0, p0), (x1, p1))):
+        ref = _unit_update(x, p, m, sigma_m)
+        np.testing.assert_allclose(xs[j], ref[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(ps[j], ref[1], rtol=1e-8, atol=1e-12)
+        assert loglik[j] == pytest.approx(ref[2], rel=1e-9)
+
+
 def test_size_update_is_the_scalar_kalman_update_of_every_model() -> None:
     (x0, p0), (x1, p1) = _random_state(4), _random_state(5)
     h = np.zeros((1, TRACK_DIM))
@@ -561,3 +574,25 @@ def test_direction_rate_is_the_derivative_of_the_centring_pan_tilt() -> None:
     expected = (pan_tilt(p + v * h) - pan_tilt(p - v * h)) / (2 * h)
     est = Track3DEstimate(0.0, tuple(p), tuple(v), (0.0, 0.0, 0.0), 0.0, (0.0, 0.0, 0.0))  # type: ignore[arg-type]
     np.testing.assert_allclose(direction_rate_deg_s(est), expected, rtol=1e-6)
+
+
+def test_extrapolation_carries_the_last_estimate_without_a_step() -> None:
+    tracker = Tracker3D.of_kind("mmae")
+    assert tracker.extrapolate(0.0) is None
+    for i in range(60):  # moving at 0.3 m/s along x at 5 m
+        t = i / 30
+        x = 0.3 * t
+        u = CAM.principal_point_px[0] + x / 5.0 / (CAM.pixel_pitch_mm / CAM.image_distance_mm)
+        meas = DirectionSize((u, CAM.principal_point_px[1]), 0.0, 0.0, 0.036 / 5.0, 3e-4)
+        last = tracker.step_size(t, unit_size_point(meas, CAM), (0.036, 1e-9) if i == 0 else None)
+    assert last is not None
+    ahead = tracker.extrapolate(last.t + 0.1)
+    assert ahead is not None
+    v, a = np.array(last.velocity_m_s), np.array(last.acceleration_m_s2)
+    np.testing.assert_allclose(
+        ahead.position_m, np.array(last.position_m) + v * 0.1 + a * 0.005, atol=1e-12
+    )
+    assert ahead.position_sigma_m == last.position_sigma_m
+    assert ahead.model_probabilities == last.model_probabilities
+    assert tracker.estimate() == last  # the state did not move
+    assert tracker.extrapolate(last.t + 5.0) is None  # beyond max_gap_s

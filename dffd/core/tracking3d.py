@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -307,6 +307,7 @@ class Tracker3D:
         self._mu = np.full(n, 1.0 / n)
         self._t: float | None = None
         self._size: tuple[float, float] | None = None  # (R̂, var) of the last size track
+        self._last: Track3DEstimate | None = None  # the last step's output
 
     @classmethod
     def of_kind(cls, kind: TrackerKind, config: Tracker3DConfig | None = None) -> Tracker3D:
@@ -332,6 +333,7 @@ class Tracker3D:
         self._mu = np.full(n, 1.0 / n)
         self._t = None
         self._size = None
+        self._last = None
 
     def step(
         self, t: float, meas: DirectionDepth | None, camera: CameraModel | None = None
@@ -386,11 +388,28 @@ class Tracker3D:
         if size is not None:
             self._x, self._p = _size_update(self._x, self._p, size[0], size[1])
         if unit is not None:
-            self._update_models(lambda x, p: _unit_update(x, p, unit[0], unit[1]))
+            self._x, self._p, loglik = _unit_update_all(self._x, self._p, unit[0], unit[1])
+            self._update_probabilities(loglik)
         if self._size is not None:
             mu = self._mu
             self._size = float(mu @ self._x[:, SIZE]), float(mu @ self._p[:, SIZE, SIZE])
         return self.estimate()
+
+    def extrapolate(self, t: float) -> Track3DEstimate | None:
+        """The last combined estimate carried to ``t`` at constant acceleration, without a
+        step: a cheap output for frames that bring no measurement (the state is unchanged;
+        σ is the last one). None without a track, or beyond ``max_gap_s``."""
+        est = self.estimate() if self._last is None else self._last
+        if est is None or not 0.0 <= t - est.t <= self.config.max_gap_s:
+            return None
+        dt = t - est.t
+        p, v, a = est.position_m, est.velocity_m_s, est.acceleration_m_s2
+        return replace(
+            est,
+            t=t,
+            position_m=_vec3(np.add(p, np.multiply(v, dt) + np.multiply(a, 0.5 * dt * dt))),
+            velocity_m_s=_vec3(np.add(v, np.multiply(a, dt))),
+        )
 
     def estimate(self) -> Track3DEstimate | None:
         """The combined estimate at the last step's time."""
@@ -405,7 +424,7 @@ class Tracker3D:
             for m, model, xi in zip(mu, self.models, self._x, strict=True)
         )
         sig = np.sqrt(np.maximum(np.diag(pp), 0.0))
-        return Track3DEstimate(
+        self._last = Track3DEstimate(
             t=self._t,
             position_m=_vec3(x[POS]),
             velocity_m_s=_vec3(x[VEL]),
@@ -414,6 +433,7 @@ class Tracker3D:
             position_sigma_m=_vec3(sig),
             model_probabilities=self.probabilities,
         )
+        return self._last
 
     # -- private ----------------------------------------------------------------------------
 
@@ -483,6 +503,9 @@ class Tracker3D:
         loglik = np.empty(len(self.models))
         for j in range(len(self.models)):
             self._x[j], self._p[j], loglik[j] = update(self._x[j], self._p[j])
+        self._update_probabilities(loglik)
+
+    def _update_probabilities(self, loglik: FloatArray) -> None:
         if len(self.models) > 1:
             floor = self.config.probability_floor
             self._mu = mmae_probabilities(self._mu, loglik, floor)
@@ -524,6 +547,15 @@ class Tracker3DBank:
         out: dict[str, Track3DEstimate] = {}
         for kind, tracker in self.trackers.items():
             est = tracker.step_size(t, unit, size)
+            if est is not None:
+                out[kind] = est
+        return out
+
+    def extrapolate(self, t: float) -> dict[str, Track3DEstimate]:
+        """Every tracker's :meth:`Tracker3D.extrapolate` to ``t``; those with a track."""
+        out: dict[str, Track3DEstimate] = {}
+        for kind, tracker in self.trackers.items():
+            est = tracker.extrapolate(t)
             if est is not None:
                 out[kind] = est
         return out
@@ -571,6 +603,30 @@ def _unit_update(
     aht = a[:, POS] - np.outer(a[:, SIZE], m)  # A Hᵀ
     p_new = a - aht @ gain.T + gain @ rn @ gain.T
     return x_new, _sym(p_new), loglik
+
+
+def _unit_update_all(
+    xs: FloatArray, ps: FloatArray, m: FloatArray, sigma_m: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`_unit_update` of every model at once on stacked (n, d) states and (n, d, d)
+    covariances (the same arithmetic, batched: one NumPy call per step for all models)."""
+    size = xs[:, SIZE]
+    nu = size[:, None] * m - xs[:, POS]  # (n, 3)
+    pht = ps[:, :, POS] - ps[:, :, SIZE, None] * m  # (n, d, 3) = P Hᵀ
+    rn = (size * size)[:, None, None] * sigma_m  # (n, 3, 3)
+    s = pht[:, POS, :] - m[:, None] * pht[:, SIZE, None, :] + rn
+    s = 0.5 * (s + s.transpose(0, 2, 1))
+    s_inv = np.linalg.inv(s)
+    _, logdet = np.linalg.slogdet(s)
+    maha = np.einsum("ni,nij,nj->n", nu, s_inv, nu)
+    loglik = -0.5 * (maha + logdet + 3.0 * _LOG_2PI)
+    gain = pht @ s_inv  # (n, d, 3)
+    xs_new = xs + np.einsum("nij,nj->ni", gain, nu)
+    gt = gain.transpose(0, 2, 1)
+    a = ps - gain @ pht.transpose(0, 2, 1)  # (I − KH) P
+    aht = a[:, :, POS] - a[:, :, SIZE, None] * m  # A Hᵀ
+    ps_new = a - aht @ gt + gain @ rn @ gt
+    return xs_new, 0.5 * (ps_new + ps_new.transpose(0, 2, 1)), np.asarray(loglik)
 
 
 def _size_update(
