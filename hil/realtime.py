@@ -35,10 +35,12 @@ from typing import Any
 
 import numpy as np
 
+from dffd.core.tracking3d import Track3DEstimate
 from hil.baselines import known_size_depth
 from hil.results import BurstRecord, RunResult
 from hil.runner import RunOptions
 from hil.scenario import Scenario
+from hil.track3d import Track3DScore, Truth3D
 
 logger = logging.getLogger(__name__)
 
@@ -69,6 +71,7 @@ class _Collected:
     measurements: list[dict[str, Any]] = field(default_factory=list)
     truth: dict[float, float] = field(default_factory=dict)  # t_mono (rounded) -> z_m
     truth_order: list[float] = field(default_factory=list)
+    truth_3d: dict[float, Truth3D] = field(default_factory=dict)  # t_mono (rounded) -> 3D truth
     latency_s: list[float] = field(default_factory=list)
     status: dict[str, Any] | None = None
     first_estimate_at: float | None = None
@@ -182,9 +185,13 @@ async def _collect(  # noqa: PLR0917 - private helper of _session
                     key = round(float(payload["t_mono"]), 4)
                     data.truth[key] = float(payload["z_m"])
                     data.truth_order.append(key)
+                    truth3d = _truth_3d(payload)
+                    if truth3d is not None:
+                        data.truth_3d[key] = truth3d
                     if len(data.truth_order) > TRUTH_HISTORY * 4:
                         for old in data.truth_order[:TRUTH_HISTORY]:
                             data.truth.pop(old, None)
+                            data.truth_3d.pop(old, None)
                         del data.truth_order[:TRUTH_HISTORY]
                 elif topic.endswith("/estimate"):
                     if data.first_estimate_at is None:
@@ -291,6 +298,8 @@ def _score(data: _Collected, result: RunResult, scenario: Scenario, truth_csv: P
                 truth_v_mm=None,
             )
         )
+    if lab_truth is None:
+        result.track3d = _score_3d(est, data.truth_3d, scenario.settle_s, t0)
     result.latency_s = data.latency_s
     if lab_truth is None:
         result.extra["latency_note"] = (
@@ -305,6 +314,52 @@ def _score(data: _Collected, result: RunResult, scenario: Scenario, truth_csv: P
     matched = [np.isfinite(s.arrays()[2]).any() for s in result.estimates.values() if len(s)]
     if not any(matched):
         result.notes.append("no estimate could be matched to ground truth")
+
+
+def _truth_3d(payload: dict[str, Any]) -> Truth3D | None:
+    """The 3D truth of a ``…/sim/truth`` payload (None from a simulator without it)."""
+    vel, acc = payload.get("velocity_m_s"), payload.get("acceleration_m_s2")
+    omega = payload.get("angular_speed_rad_s")
+    if vel is None or acc is None or omega is None:
+        return None
+    pos = payload["position_m"]
+    return Truth3D(
+        (float(pos[0]), float(pos[1]), float(pos[2])),
+        (float(vel[0]), float(vel[1]), float(vel[2])),
+        (float(acc[0]), float(acc[1]), float(acc[2])),
+        float(omega),
+    )
+
+
+def _score_3d(
+    estimates: list[dict[str, Any]], truth: dict[float, Truth3D], settle_s: float, t0: float
+) -> Track3DScore | None:
+    """The published 3D track (the daemon's MMAE) of every estimate that carries one, against
+    the 3D truth of its frame; None when no estimate could be matched."""
+    score = Track3DScore(settle_s)
+    matched = 0
+    for p in estimates:
+        sigma = p.get("position_sigma_m")
+        t = float(p["t_mono"])
+        tr = truth.get(round(t, 4))
+        if sigma is None or tr is None or p.get("acceleration_m_s2") is None:
+            continue
+        est = Track3DEstimate(
+            t=t,
+            position_m=_vec3(p["position_m"]),
+            velocity_m_s=_vec3(p["velocity_m_s"]),
+            acceleration_m_s2=_vec3(p["acceleration_m_s2"]),
+            angular_speed_rad_s=float(p.get("angular_speed_rad_s") or 0.0),
+            position_sigma_m=_vec3(sigma),
+            model_probabilities=dict(p.get("model_probabilities") or {}),
+        )
+        score.add(t - t0, tr, {"mmae": est})
+        matched += 1
+    return score if matched else None
+
+
+def _vec3(v: Any) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
 
 
 def _lens_for(scenario: Scenario) -> Any:

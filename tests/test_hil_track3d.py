@@ -65,3 +65,46 @@ def test_no_frames_after_settling_gives_none() -> None:
     score = Track3DScore(settle_s=100.0)
     score.add(1.0, TRUTH, {"cv": estimate(1.0, 0.0, 0.0, {"cv": 1.0})})
     assert score.block() == {"cv": None}
+
+
+def test_realtime_scores_the_published_track_against_the_truth_topic() -> None:
+    from types import SimpleNamespace
+
+    from dffd.daemon.payloads import truth_payload
+    from hil.realtime import _score_3d, _truth_3d
+
+    # The daemon's truth payload carries the 3D truth; the bench reads it back.
+    frame_truth = SimpleNamespace(
+        z_m=5.0,
+        position_world_m=TRUTH.position_m,
+        size_m=0.036,
+        velocity_world_mps=TRUTH.velocity_m_s,
+        acceleration_world_mps2=TRUTH.acceleration_m_s2,
+        angular_speed_rad_s=TRUTH.angular_speed_rad_s,
+    )
+    payload = truth_payload(1.0, frame_truth).model_dump(mode="json")
+    assert _truth_3d(payload) == TRUTH
+    assert _truth_3d({**payload, "angular_speed_rad_s": None}) is None  # an older simulator
+    truth = {round(100.0 + i, 4): TRUTH for i in range(10)}
+    estimates = []
+    for i in range(10):
+        e = estimate(100.0 + i, 0.03 if i % 2 else -0.03, 0.004, {"cv": 0.5, "ca": 0.5})
+        estimates.append(
+            {
+                "t_mono": e.t,
+                "position_m": list(e.position_m),
+                "velocity_m_s": list(e.velocity_m_s),
+                "acceleration_m_s2": list(e.acceleration_m_s2),
+                "angular_speed_rad_s": e.angular_speed_rad_s,
+                "position_sigma_m": list(e.position_sigma_m),
+                "model_probabilities": e.model_probabilities,
+            }
+        )
+    estimates.append({"t_mono": 111.0, "position_m": [0.0, 0.0, 1.0], "position_sigma_m": None})
+    score = _score_3d(estimates, truth, settle_s=2.0, t0=100.0)
+    assert score is not None
+    block = score.block()
+    assert block["mmae"]["n"] == 8  # t − t0 ≥ 2 s; the estimate without a track is skipped
+    assert block["mmae"]["position_rms_m"] == pytest.approx(0.03)
+    assert block["mmae"]["angular_speed"]["bias_rad_s"] == pytest.approx(0.004)
+    assert _score_3d(estimates, {}, settle_s=2.0, t0=100.0) is None

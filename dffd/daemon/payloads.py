@@ -204,6 +204,9 @@ def truth_payload(t_mono: float, truth: Any) -> models.Truth:
         z_m=float(truth.z_m),
         position_m=_vec(truth.position_world_m) or (0.0, 0.0, 0.0),
         size_m=float(truth.size_m) if truth.size_m > 0 else None,
+        velocity_m_s=_vec(getattr(truth, "velocity_world_mps", None)),
+        acceleration_m_s2=_vec(getattr(truth, "acceleration_world_mps2", None)),
+        angular_speed_rad_s=_fin(getattr(truth, "angular_speed_rad_s", None)),
     )
 
 

@@ -373,6 +373,17 @@ class Truth(Payload):
     z_m: float = Field(description="true depth along the optical axis")
     position_m: Vec3 = Field(description="true target position [x, y, z] in the world frame")
     size_m: Annotated[float, Field(gt=0)] | None = None
+    velocity_m_s: Vec3 | None = Field(
+        default=None, description="true target velocity in the world frame"
+    )
+    acceleration_m_s2: Vec3 | None = Field(
+        default=None, description="true target acceleration in the world frame"
+    )
+    angular_speed_rad_s: float | None = Field(
+        default=None,
+        description="true turn rate of the velocity about the upward vertical, + counter-clockwise"
+        " seen from above (docs/tracking3d.md)",
+    )
 
 
 def parse_command(payload: bytes | str) -> Command:
