@@ -146,8 +146,100 @@ class FrameHandoff:
             return len(self._frames)
 
 
-class OpenCVFrameSource:
+class ThreadedFrameSource:
+    """The shell shared by the OpenCV sources: a reader thread, a :class:`FrameHandoff` and the
+    async ``start``/``next_frame``/``close`` of :class:`drivers.frames.FrameSource`.
+
+    A subclass opens its capture in :meth:`_open` (None if it cannot), reads it in
+    :meth:`_read_loop` (pushing to ``self._handoff`` and calling :meth:`_notify` per frame;
+    setting ``self._ended`` when a file ends) and names itself in :attr:`_noun` and
+    :meth:`_open_error`.
+    """
+
+    _noun = "video"  # "capture", "stream": in the thread's name and in errors
+
+    def __init__(self, queue_frames: int, clock: Callable[[], float]) -> None:
+        self._clock = clock
+        self._handoff = FrameHandoff(queue_frames)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._ready = asyncio.Event()
+        self._ended = False
+        self._closed = False
+
+    async def start(self) -> None:
+        """Open the source (raises :class:`FrameSourceError` if it cannot) and start reading."""
+        if self._closed:
+            raise FrameSourceError(f"{self._noun} source is closed; create a new one")
+        if self._thread is not None:
+            return
+        self._loop = asyncio.get_running_loop()
+        self._ready = asyncio.Event()
+        capture = await asyncio.to_thread(self._open)
+        if capture is None:
+            raise FrameSourceError(self._open_error())
+        self._thread = threading.Thread(
+            target=self._read_loop, args=(capture,), name=f"dffd-{self._noun}", daemon=True
+        )
+        self._thread.start()
+
+    async def next_frame(self) -> Frame:
+        """The oldest buffered frame (wrap in ``asyncio.timeout``)."""
+        if self._thread is None:
+            raise FrameSourceError(f"{self._noun} source not started; call start() first")
+        while True:
+            frame = self._handoff.pop()
+            if frame is not None:
+                return frame
+            if self._ended:
+                raise EndOfVideoError(f"end of video {self._name()!r}")
+            if self._closed:
+                raise FrameSourceError(f"{self._noun} source closed")
+            self._ready.clear()
+            frame = self._handoff.pop()  # a frame may have landed before clear()
+            if frame is not None:
+                return frame
+            await self._ready.wait()
+
+    async def close(self) -> None:
+        """Stop the reader thread and release the capture; idempotent."""
+        self._closed = True
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            await asyncio.to_thread(thread.join, THREAD_JOIN_TIMEOUT_S)
+            if thread.is_alive():
+                log.warning(
+                    "%s thread still blocked in read() after %.1f s; leaving it to exit",
+                    self._noun, THREAD_JOIN_TIMEOUT_S,
+                )  # fmt: skip
+        self._ready.set()
+
+    # -- for subclasses ----------------------------------------------------------------------
+    def _name(self) -> str:
+        raise NotImplementedError
+
+    def _open_error(self) -> str:
+        raise NotImplementedError
+
+    def _open(self) -> VideoCaptureLike | None:
+        raise NotImplementedError
+
+    def _read_loop(self, capture: VideoCaptureLike | None) -> None:
+        raise NotImplementedError
+
+    def _notify(self) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):  # the loop closed between check and call
+                loop.call_soon_threadsafe(self._ready.set)
+
+
+class OpenCVFrameSource(ThreadedFrameSource):
     """Frames from a V4L2 device or a video file (a :class:`drivers.frames.FrameSource`)."""
+
+    _noun = "capture"
 
     def __init__(
         self,
@@ -156,20 +248,13 @@ class OpenCVFrameSource:
         capture_factory: CaptureFactory | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        super().__init__(settings.queue_frames, clock)
         self.settings = settings
         self._factory: CaptureFactory = capture_factory or _opencv_capture
-        self._clock = clock
-        self._handoff = FrameHandoff(settings.queue_frames)
         self._gap_dropped = 0
         self._reopens = 0
         self._size = (settings.width or 0, settings.height or 0)
         self._fps = settings.fps or 0.0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._ready = asyncio.Event()
-        self._ended = False
-        self._closed = False
 
     # -- FrameSource protocol ----------------------------------------------------------------
     @property
@@ -192,59 +277,17 @@ class OpenCVFrameSource:
         """How many times the device was released and reopened after failures."""
         return self._reopens
 
-    async def start(self) -> None:
-        """Open the device (raises :class:`FrameSourceError` if it cannot) and start reading."""
-        if self._closed:
-            raise FrameSourceError("capture source is closed; create a new one")
-        if self._thread is not None:
-            return
-        self._loop = asyncio.get_running_loop()
-        self._ready = asyncio.Event()
-        capture = await asyncio.to_thread(self._open)
-        if capture is None:
-            raise FrameSourceError(
-                f"cannot open video source {self.settings.device!r}: check that it exists "
-                "(v4l2-ctl --list-devices, dffd devices), that this user is in group 'video', "
-                "and that no other program holds it"
-            )
-        self._thread = threading.Thread(
-            target=self._read_loop, args=(capture,), name="dffd-capture", daemon=True
-        )
-        self._thread.start()
-
-    async def next_frame(self) -> Frame:
-        """The oldest buffered frame (wrap in ``asyncio.timeout``)."""
-        if self._thread is None:
-            raise FrameSourceError("capture source not started; call start() first")
-        while True:
-            frame = self._handoff.pop()
-            if frame is not None:
-                return frame
-            if self._ended:
-                raise EndOfVideoError(f"end of video {self.settings.device!r}")
-            if self._closed:
-                raise FrameSourceError("capture source closed")
-            self._ready.clear()
-            frame = self._handoff.pop()  # a frame may have landed before clear()
-            if frame is not None:
-                return frame
-            await self._ready.wait()
-
-    async def close(self) -> None:
-        """Stop the reader thread and release the device; idempotent."""
-        self._closed = True
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            await asyncio.to_thread(thread.join, THREAD_JOIN_TIMEOUT_S)
-            if thread.is_alive():
-                log.warning(
-                    "capture thread still blocked in read() after %.1f s; leaving it to exit",
-                    THREAD_JOIN_TIMEOUT_S,
-                )
-        self._ready.set()
-
     # -- reader thread -----------------------------------------------------------------------
+    def _name(self) -> str:
+        return str(self.settings.device)
+
+    def _open_error(self) -> str:
+        return (
+            f"cannot open video source {self.settings.device!r}: check that it exists "
+            "(v4l2-ctl --list-devices, dffd devices), that this user is in group 'video', "
+            "and that no other program holds it"
+        )
+
     def _open(self) -> VideoCaptureLike | None:
         s = self.settings
         backend = cv2.CAP_ANY if s.is_file or sys.platform != "linux" else cv2.CAP_V4L2
@@ -327,12 +370,6 @@ class OpenCVFrameSource:
             if capture is not None:
                 capture.release()
             self._notify()
-
-    def _notify(self) -> None:
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            with contextlib.suppress(RuntimeError):  # the loop closed between check and call
-                loop.call_soon_threadsafe(self._ready.set)
 
 
 class _OpenCVCapture:

@@ -26,8 +26,6 @@ Lab set-up
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import logging
 import threading
 import time
@@ -39,16 +37,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.capture import (
-    THREAD_JOIN_TIMEOUT_S,
-    EndOfVideoError,
-    FrameHandoff,
-    Image,
-    VideoCaptureLike,
-    backoff_delays,
-)
+from drivers.capture import Image, ThreadedFrameSource, VideoCaptureLike, backoff_delays
 from drivers.exposure import ExposureClock, TimestampMode
-from drivers.frames import Frame, FrameSourceError
+from drivers.frames import Frame
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +91,10 @@ class StreamHealth:
     latency_s: float
 
 
-class StreamFrameSource:
+class StreamFrameSource(ThreadedFrameSource):
     """Frames from a network stream or a video file (a :class:`drivers.frames.FrameSource`)."""
+
+    _noun = "stream"
 
     def __init__(
         self,
@@ -110,10 +103,9 @@ class StreamFrameSource:
         capture_factory: StreamCaptureFactory | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        super().__init__(settings.queue_frames, clock)
         self.settings = settings
         self._factory: StreamCaptureFactory = capture_factory or _ffmpeg_capture
-        self._clock = clock
-        self._handoff = FrameHandoff(settings.queue_frames)
         self._stamps = ExposureClock(settings.timestamps, settings.latency_s)
         self._times: OrderedDict[int, float] = OrderedDict()
         self._times_lock = threading.Lock()
@@ -123,12 +115,6 @@ class StreamFrameSource:
         self._gap_dropped = 0
         self._reconnects = 0
         self._connected = False
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._ready = asyncio.Event()
-        self._ended = False
-        self._closed = False
 
     # -- FrameSource protocol ----------------------------------------------------------------
     @property
@@ -167,60 +153,18 @@ class StreamFrameSource:
         with self._times_lock:
             return self._times.get(index)
 
-    async def start(self) -> None:
-        """Open the stream (raises :class:`FrameSourceError` if it cannot) and start reading."""
-        if self._closed:
-            raise FrameSourceError("stream source is closed; create a new one")
-        if self._thread is not None:
-            return
-        self._loop = asyncio.get_running_loop()
-        self._ready = asyncio.Event()
-        capture = await asyncio.to_thread(self._open)
-        if capture is None:
-            raise FrameSourceError(
-                f"cannot open video stream {redact(self.settings.url)!r} within "
-                f"{self.settings.open_timeout_s:g} s: check the URL (path and credentials are in "
-                "the camera's manual), that the camera is reachable (ping, its web page) and that "
-                "its stream is enabled; try it with `ffplay URL`"
-            )
-        self._thread = threading.Thread(
-            target=self._read_loop, args=(capture,), name="dffd-stream", daemon=True
-        )
-        self._thread.start()
-
-    async def next_frame(self) -> Frame:
-        """The oldest buffered frame (wrap in ``asyncio.timeout``)."""
-        if self._thread is None:
-            raise FrameSourceError("stream source not started; call start() first")
-        while True:
-            frame = self._handoff.pop()
-            if frame is not None:
-                return frame
-            if self._ended:
-                raise EndOfVideoError(f"end of video {self.settings.url!r}")
-            if self._closed:
-                raise FrameSourceError("stream source closed")
-            self._ready.clear()
-            frame = self._handoff.pop()  # a frame may have landed before clear()
-            if frame is not None:
-                return frame
-            await self._ready.wait()
-
-    async def close(self) -> None:
-        """Stop the reader thread and release the stream; idempotent."""
-        self._closed = True
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            await asyncio.to_thread(thread.join, THREAD_JOIN_TIMEOUT_S)
-            if thread.is_alive():
-                log.warning(
-                    "stream thread still blocked in read() after %.1f s; leaving it to exit",
-                    THREAD_JOIN_TIMEOUT_S,
-                )
-        self._ready.set()
-
     # -- reader thread -----------------------------------------------------------------------
+    def _name(self) -> str:
+        return self.settings.url
+
+    def _open_error(self) -> str:
+        return (
+            f"cannot open video stream {redact(self.settings.url)!r} within "
+            f"{self.settings.open_timeout_s:g} s: check the URL (path and credentials are in "
+            "the camera's manual), that the camera is reachable (ping, its web page) and that "
+            "its stream is enabled; try it with `ffplay URL`"
+        )
+
     def _open(self) -> VideoCaptureLike | None:
         s = self.settings
         params = [
@@ -317,12 +261,6 @@ class StreamFrameSource:
             self._times[index] = t
             while len(self._times) > KEPT_TIMES:
                 self._times.popitem(last=False)
-
-    def _notify(self) -> None:
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            with contextlib.suppress(RuntimeError):  # the loop closed between check and call
-                loop.call_soon_threadsafe(self._ready.set)
 
 
 def redact(url: str) -> str:
