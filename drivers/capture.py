@@ -158,15 +158,35 @@ class ThreadedFrameSource:
 
     _noun = "video"  # "capture", "stream": in the thread's name and in errors
 
-    def __init__(self, queue_frames: int, clock: Callable[[], float]) -> None:
+    def __init__(
+        self, queue_frames: int, clock: Callable[[], float], size: tuple[int, int], fps: float
+    ) -> None:
         self._clock = clock
         self._handoff = FrameHandoff(queue_frames)
+        self._size = size  # updated by _open from what the device or stream reports
+        self._fps = fps
+        self._gap_dropped = 0  # frames missing between consecutive reads
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._ready = asyncio.Event()
         self._ended = False
         self._closed = False
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) the source delivers (the requested size, or (0, 0), before start)."""
+        return self._size
+
+    @property
+    def fps(self) -> float:
+        """The source's frame rate (the configured one when it does not say)."""
+        return self._fps
+
+    @property
+    def dropped_frames(self) -> int:
+        """Frames overwritten in the handoff plus frames missing between reads."""
+        return self._handoff.dropped + self._gap_dropped
 
     async def start(self) -> None:
         """Open the source (raises :class:`FrameSourceError` if it cannot) and start reading."""
@@ -248,29 +268,11 @@ class OpenCVFrameSource(ThreadedFrameSource):
         capture_factory: CaptureFactory | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        super().__init__(settings.queue_frames, clock)
+        size = (settings.width or 0, settings.height or 0)
+        super().__init__(settings.queue_frames, clock, size, settings.fps or 0.0)
         self.settings = settings
         self._factory: CaptureFactory = capture_factory or _opencv_capture
-        self._gap_dropped = 0
         self._reopens = 0
-        self._size = (settings.width or 0, settings.height or 0)
-        self._fps = settings.fps or 0.0
-
-    # -- FrameSource protocol ----------------------------------------------------------------
-    @property
-    def frame_size(self) -> tuple[int, int]:
-        """(width, height) granted by the device (the requested size before start)."""
-        return self._size
-
-    @property
-    def fps(self) -> float:
-        """Frame rate granted by the device (requested, or the file's, when unknown)."""
-        return self._fps
-
-    @property
-    def dropped_frames(self) -> int:
-        """Frames overwritten in the handoff plus device frames missing from the timestamps."""
-        return self._handoff.dropped + self._gap_dropped
 
     @property
     def reopen_count(self) -> int:
@@ -372,11 +374,11 @@ class OpenCVFrameSource(ThreadedFrameSource):
             self._notify()
 
 
-class _OpenCVCapture:
-    """``cv2.VideoCapture`` behind :class:`VideoCaptureLike`."""
+class OpenCVCapture:
+    """An opened ``cv2.VideoCapture`` behind :class:`VideoCaptureLike` (any backend)."""
 
-    def __init__(self, device: str | int, backend: int) -> None:
-        self._capture = cv2.VideoCapture(device, backend)
+    def __init__(self, capture: cv2.VideoCapture) -> None:
+        self._capture = capture
 
     def isOpened(self) -> bool:  # noqa: N802 (OpenCV's name)
         return bool(self._capture.isOpened())
@@ -398,4 +400,4 @@ class _OpenCVCapture:
 
 
 def _opencv_capture(device: str | int, backend: int) -> VideoCaptureLike:
-    return _OpenCVCapture(device, backend)
+    return OpenCVCapture(cv2.VideoCapture(device, backend))

@@ -37,7 +37,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.capture import Image, ThreadedFrameSource, VideoCaptureLike, backoff_delays
+from drivers.capture import (
+    OpenCVCapture,
+    ThreadedFrameSource,
+    VideoCaptureLike,
+    backoff_delays,
+)
 from drivers.exposure import ExposureClock, TimestampMode
 from drivers.frames import Frame
 
@@ -103,34 +108,15 @@ class StreamFrameSource(ThreadedFrameSource):
         capture_factory: StreamCaptureFactory | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        super().__init__(settings.queue_frames, clock)
+        super().__init__(settings.queue_frames, clock, (0, 0), settings.fps)
         self.settings = settings
         self._factory: StreamCaptureFactory = capture_factory or _ffmpeg_capture
         self._stamps = ExposureClock(settings.timestamps, settings.latency_s)
         self._times: OrderedDict[int, float] = OrderedDict()
         self._times_lock = threading.Lock()
-        self._size = (0, 0)
-        self._fps = settings.fps
         self._frames = 0
-        self._gap_dropped = 0
         self._reconnects = 0
         self._connected = False
-
-    # -- FrameSource protocol ----------------------------------------------------------------
-    @property
-    def frame_size(self) -> tuple[int, int]:
-        """(width, height) of the stream ((0, 0) before it opened)."""
-        return self._size
-
-    @property
-    def fps(self) -> float:
-        """The stream's frame rate (the configured one when it does not say)."""
-        return self._fps
-
-    @property
-    def dropped_frames(self) -> int:
-        """Frames overwritten in the handoff plus frames missing between arrivals."""
-        return self._handoff.dropped + self._gap_dropped
 
     @property
     def reconnects(self) -> int:
@@ -274,30 +260,5 @@ def redact(url: str) -> str:
     return f"{scheme}://{user}:***@{host}{slash}{path}"
 
 
-class _FfmpegCapture:
-    """``cv2.VideoCapture(url, CAP_FFMPEG, params)`` behind :class:`VideoCaptureLike`."""
-
-    def __init__(self, url: str, params: Sequence[int]) -> None:
-        self._capture = cv2.VideoCapture(url, cv2.CAP_FFMPEG, list(params))
-
-    def isOpened(self) -> bool:  # noqa: N802 (OpenCV's name)
-        return bool(self._capture.isOpened())
-
-    def read(self) -> tuple[bool, Image | None]:
-        ok, image = self._capture.read()
-        if not ok or image is None:
-            return False, None
-        return True, np.asarray(image, dtype=np.uint8)
-
-    def set(self, prop: int, value: float) -> bool:
-        return bool(self._capture.set(prop, value))
-
-    def get(self, prop: int) -> float:
-        return float(self._capture.get(prop))
-
-    def release(self) -> None:
-        self._capture.release()
-
-
 def _ffmpeg_capture(url: str, params: Sequence[int]) -> VideoCaptureLike:
-    return _FfmpegCapture(url, params)
+    return OpenCVCapture(cv2.VideoCapture(url, cv2.CAP_FFMPEG, list(params)))
