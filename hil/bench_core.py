@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core import kernel_dispatch, kernels_numpy
 from dffd.core.contour import outward_normals, resample_closed
 from dffd.core.focus import focus_cost
 from dffd.core.lens import Lens
@@ -66,13 +67,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=900, help="timed frames (all roles)")
     parser.add_argument("--scenario", default=DEFAULT_SCENARIO)
     parser.add_argument("--out", type=Path, default=None, help="JSON result file")
+    parser.add_argument(
+        "--kernels",
+        choices=("compiled", "numpy"),
+        default="compiled",
+        help="the tracker's kernels: numba's (default) or the NumPy twins a first start runs on",
+    )
     args = parser.parse_args(argv)
     if args.frames < 1:
         parser.error("--frames must be >= 1")
     cv2.setNumThreads(1)
     bench = _Bench(args.scenario, args.frames)
-    bench.run()
+    impl = kernels_numpy if args.kernels == "numpy" else kernel_dispatch.current()
+    with kernel_dispatch.using(impl):
+        bench.run()
     result = bench.result()
+    result["kernels"] = args.kernels
     _print(result)
     if args.out is not None:
         args.out.write_text(json.dumps(result, indent=2) + "\n", "utf-8")

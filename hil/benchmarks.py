@@ -479,7 +479,7 @@ def _service_figures(soak: dict[str, Any], fresh: dict[str, Any]) -> list[dict[s
         ),
         figure(
             "first_estimate_fresh",
-            "start → first estimate, empty kernel cache (compiles at start)",
+            "start → first estimate, empty kernel cache (NumPy kernels while numba compiles)",
             cold,
             "s",
             f"≤ {FIRST_ESTIMATE_GOAL_S:g} s",

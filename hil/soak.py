@@ -17,7 +17,8 @@ loopback port as :mod:`hil.realtime` starts it), subscribes to ``…/estimate`` 
 * per window of ``--window`` seconds: estimate and measurement rates, latency p50/p99, CPU %, RSS.
 
 ``fresh_kernel_cache`` starts the daemon with an empty ``NUMBA_CACHE_DIR`` (a fresh install that
-skipped ``python -m dffd.warmup``): the start → first estimate then includes the kernels' compile.
+skipped ``python -m dffd.warmup``): the daemon then starts on the kernels' NumPy twins while a
+background process compiles them.
 
 Writes ``soak.json`` and ``soak.png`` into ``--out``. Figures only, no verdicts asserted.
 """

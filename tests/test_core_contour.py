@@ -22,7 +22,7 @@ from dffd.core.contour import (
     radius_of,
     resample_closed,
 )
-from dffd.core.kernels import HUBER_K_PX, IRLS_ITERATIONS, OUTLIER_PX, RIDGE
+from dffd.core.kernel_layout import HUBER_K_PX, IRLS_ITERATIONS, OUTLIER_PX, RIDGE
 from dffd.core.synthetic import render_disc
 
 W, H = 640, 480

@@ -96,16 +96,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser(selected).parse_args(argv)
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    warm = None
     if args.command in NEEDS_CORE:
         from dffd.cli.loading import say_if_compiling
 
-        say_if_compiling(args.command)
+        # The service starts on the kernels' NumPy twins while numba compiles in a separate
+        # process (seconds to a first estimate on a fresh install, not ~30 s); replay and
+        # calibrate wait for the compiled kernels (their results must not depend on timing).
+        background = args.command == "run"
+        say_if_compiling(args.command, background=background)
+        if background:
+            from dffd.warmup import start_background
+
+            warm = start_background()
     try:
         return cast(int, _resolve(args._implementation)(args))
     except KeyboardInterrupt:
         # Ctrl-C before the subcommand could handle it (e.g. `dffd run` still loading).
         print(f"\ndffd {args.command}: interrupted (exit {EXIT_INTERRUPTED})", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        if warm is not None:
+            warm.stop()
 
 
 def entry_point() -> None:

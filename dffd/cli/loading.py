@@ -46,13 +46,18 @@ def kernels_cached(environ: dict[str, str] | None = None) -> bool:
     return any(any(d.glob(f"{stem}.*.nbi")) for d in kernel_cache_dirs(environ) if d.is_dir())
 
 
-def say_if_compiling(command: str) -> None:
-    """Tell the user on stderr when ``dffd COMMAND`` is about to compile the kernels."""
+def say_if_compiling(command: str, *, background: bool = False) -> None:
+    """Tell the user on stderr when ``dffd COMMAND`` is about to compile the kernels.
+
+    ``background``: the command runs on the kernels' NumPy twins while they compile.
+    """
     if kernels_cached():
         return
-    print(
-        f"dffd {command}: first start after an install: compiling the tracker's kernels "
-        "(~20-40 s, once; `python -m dffd.warmup` does it ahead, `make setup` runs it)…",
-        file=sys.stderr,
-        flush=True,
+    what = (
+        "the tracker's kernels compile in the background (~20-40 s of CPU, once); it runs on "
+        "their slower NumPy twins meanwhile"
+        if background
+        else "compiling the tracker's kernels (~20-40 s, once; `python -m dffd.warmup` does it "
+        "ahead, `make setup` runs it)…"
     )
+    print(f"dffd {command}: first start after an install: {what}", file=sys.stderr, flush=True)

@@ -21,7 +21,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from dffd.core import kernels
+from dffd.core import kernel_dispatch
+from dffd.core import kernel_layout as layout
 
 FloatArray = npt.NDArray[np.float64]
 Motion = Literal["translation", "similarity", "affine"]
@@ -100,11 +101,11 @@ def edge_moments(samples: EdgeSamples) -> EdgeMoments:
     """Second moment of the edge-derivative profile along every inlier normal, and their pool.
 
     Blur variances add under convolution whatever the PSF, so the pooled moment grows as
-    ``σ0² + c (v0 − v)²`` (see ``kernels.edge_moments`` for the adapted window).
+    ``σ0² + c (v0 − v)²`` (see ``dffd.core.kernels.edge_moments`` for the adapted window).
     """
     n = len(samples.offset)
     var, mass, pooled = np.empty(n), np.empty(n), np.empty(2)
-    kernels.edge_moments(
+    kernel_dispatch.current().edge_moments(
         samples.bx, samples.by, samples.normals, samples.polarity, samples.search_px,
         samples.offset, samples.inlier, samples.sigma2_hint, EDGE_WINDOW_SIGMAS, EDGE_WINDOW_MIN_PX,
         EDGE_WINDOW_PASSES, samples.trim_fraction, var, mass, pooled,
@@ -144,7 +145,7 @@ class ContourTracker:
         self._t: float | None = None
         self._polarity = 1.0  # +1: intensity drops outward (bright target)
         self._bad_frames = 0
-        self._ws: kernels.Workspace | None = None
+        self._ws: layout.Workspace | None = None
         self._cfg_vec = np.array(
             [
                 config.min_rel_peak,
@@ -271,13 +272,15 @@ class ContourTracker:
     ) -> tuple[BoundaryObservation, tuple[float, float], float, EdgeSamples | None]:
         """One pass: (observation, centroid of ``pts``, radius_of(``pts``), its edge samples).
 
-        The per-normal search and the robust fit run in :mod:`dffd.core.kernels`; their NumPy
+        The per-normal search and the robust fit run in :mod:`dffd.core.kernels` (or in their
+        NumPy twins while those compile: :mod:`dffd.core.kernel_dispatch`); the NumPy
         reference is kept in tests/test_core_contour.py, which checks them against it.
         """
         cfg = self.config
         pts = np.ascontiguousarray(pts, dtype=np.float64)
         n = len(pts)
         ws = self._workspace(n)
+        kernels = kernel_dispatch.current()  # one implementation for the whole pass
         xmin, ymin, xmax, ymax = kernels.normals_and_box(pts, ws.normals)
         s = cfg.search_px
         window = grad.window(xmin, ymin, xmax, ymax, s + 4)
@@ -294,20 +297,20 @@ class ContourTracker:
         peaks = np.empty(n)
         out = ws.out
         kernels.fit_pass(
-            bx, by, has_window, pts, ws.normals, self._polarity, s, kernels.MOTION_CODE[motion],
+            bx, by, has_window, pts, ws.normals, self._polarity, s, layout.MOTION_CODE[motion],
             relax, self._cfg_vec, grad.shape[1], grad.shape[0], new_pts, peaks, ws.mag,
             ws.scratch, ws.design, out,
         )  # fmt: skip
-        centroid_in = (float(out[kernels.OUT_CX_IN]), float(out[kernels.OUT_CY_IN]))
-        r_in = float(out[kernels.OUT_R_IN])
-        inlier_fraction = float(out[kernels.OUT_INLIER_FRACTION])
-        if out[kernels.OUT_STATUS] != 0:
+        centroid_in = (float(out[layout.OUT_CX_IN]), float(out[layout.OUT_CY_IN]))
+        r_in = float(out[layout.OUT_R_IN])
+        inlier_fraction = float(out[layout.OUT_INLIER_FRACTION])
+        if out[layout.OUT_STATUS] != 0:
             return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in, None
-        edge_sigma2 = float(out[kernels.OUT_EDGE_SIGMA2])
+        edge_sigma2 = float(out[layout.OUT_EDGE_SIGMA2])
         samples = (
             EdgeSamples(
-                bx, by, ws.normals.copy(), ws.scratch[kernels.SCRATCH_OFFSET].copy(),
-                ws.scratch[kernels.SCRATCH_INLIER].copy(), s, self._polarity, cfg.trim_fraction,
+                bx, by, ws.normals.copy(), ws.scratch[layout.SCRATCH_OFFSET].copy(),
+                ws.scratch[layout.SCRATCH_INLIER].copy(), s, self._polarity, cfg.trim_fraction,
                 edge_sigma2,
             )
             if has_window
@@ -315,20 +318,20 @@ class ContourTracker:
         )  # fmt: skip
         obs = BoundaryObservation(
             points=new_pts,
-            centroid=(float(out[kernels.OUT_CX]), float(out[kernels.OUT_CY])),
-            r_px=float(out[kernels.OUT_R]),
+            centroid=(float(out[layout.OUT_CX]), float(out[layout.OUT_CY])),
+            r_px=float(out[layout.OUT_R]),
             peak_sq=peaks,
             inlier_fraction=inlier_fraction,
-            residual_px=float(out[kernels.OUT_RMS]),
-            ok=bool(out[kernels.OUT_OK] != 0),
+            residual_px=float(out[layout.OUT_RMS]),
+            ok=bool(out[layout.OUT_OK] != 0),
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
         )
         return obs, centroid_in, r_in, samples
 
-    def _workspace(self, n: int) -> kernels.Workspace:
+    def _workspace(self, n: int) -> layout.Workspace:
         ws = self._ws
         if ws is None or ws.n != n:
-            ws = self._ws = kernels.Workspace(n, 2 * self.config.search_px + 1)
+            ws = self._ws = layout.Workspace(n, 2 * self.config.search_px + 1)
         return ws
 
     def _estimate_polarity(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> float:

@@ -18,28 +18,40 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core.kernel_layout import (  # shared with the NumPy twins (kernels_numpy)
+    HUBER_K_PX,
+    IRLS_ITERATIONS,
+    OUT_CX,
+    OUT_CX_IN,
+    OUT_CY,
+    OUT_CY_IN,
+    OUT_EDGE_SIGMA2,
+    OUT_INLIER_FRACTION,
+    OUT_OK,
+    OUT_R,
+    OUT_R_IN,
+    OUT_RMS,
+    OUT_STATUS,
+    OUTLIER_PX,
+    RIDGE,
+)
+from dffd.core.kernel_layout import S_INTERIOR as _S_INTERIOR
+from dffd.core.kernel_layout import S_OFFSET as _S_OFFSET
+from dffd.core.kernel_layout import S_PEAK as _S_PEAK
+from dffd.core.kernel_layout import S_RES as _S_RES
+from dffd.core.kernel_layout import S_TMP as _S_TMP
+from dffd.core.kernel_layout import S_TMP2 as _S_TMP2
+from dffd.core.kernel_layout import S_VALID as _S_VALID
+from dffd.core.kernel_layout import S_W as _S_W
+from dffd.core.kernel_layout import S_WIDTH2 as _S_WIDTH2
+from dffd.core.kernel_layout import S_WNEW as _S_WNEW
+from dffd.core.kernel_layout import TINY as _TINY
+
 FloatArray = npt.NDArray[np.float64]
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 logger = logging.getLogger(__name__)
 
-HUBER_K_PX = 1.0  # Huber threshold on normal residuals: about 3x the sub-pixel edge noise
-OUTLIER_PX = 3.0  # residuals beyond this after IRLS are clutter/occlusion, not the target edge
-IRLS_ITERATIONS = 4
-RIDGE = 1e-3  # keeps the tangential slide of a circle (unobservable from normals) at zero
-
-MOTION_CODE: dict[str, int] = {"translation": 0, "similarity": 1, "affine": 2}
-# slots of the kernel's scalar output vector
-OUT_STATUS, OUT_OK, OUT_R, OUT_CX, OUT_CY, OUT_INLIER_FRACTION = 0, 1, 2, 3, 4, 5
-OUT_RMS, OUT_EDGE_SIGMA2, OUT_CX_IN, OUT_CY_IN, OUT_R_IN = 6, 7, 8, 9, 10
-_N_OUT = 11
-# columns of the per-normal scratch array
-_S_OFFSET, _S_PEAK, _S_VALID, _S_WIDTH2, _S_INTERIOR, _S_W, _S_WNEW, _S_RES = range(8)
-_S_TMP, _S_TMP2 = 8, 9
-# what fit_pass leaves in the scratch array for edge_moments: edge offsets and inlier flags
-SCRATCH_OFFSET, SCRATCH_INLIER = _S_OFFSET, _S_INTERIOR
-_N_SCRATCH = 10
-_TINY = 1e-6  # added before the log of |∇I|² (log-parabola), as in the reference
 # numba types of the kernels' arrays (all C-contiguous)
 _M, _M32, _V = "float64[:, ::1]", "float32[:, ::1]", "float64[::1]"
 
@@ -101,22 +113,6 @@ def _jit(signature: str) -> Callable[[_F], _F]:
 
 _KERNELS: list[Any] = []  # every compiled dispatcher, for cache_report()
 _UNCACHED: list[str] = []  # kernels compiled without a cache
-
-
-class Workspace:
-    """Preallocated arrays of one tracker's passes (no allocation per pass but the outputs)."""
-
-    __slots__ = ("design", "mag", "mapx", "mapy", "n", "normals", "out", "scratch")
-
-    def __init__(self, n: int, n_steps: int) -> None:
-        self.n = n
-        self.normals = np.empty((n, 2))
-        self.mapx = np.empty((n, n_steps), dtype=np.float32)
-        self.mapy = np.empty((n, n_steps), dtype=np.float32)
-        self.mag = np.empty((n, n_steps), dtype=np.float32)
-        self.scratch = np.empty((_N_SCRATCH, n))
-        self.design = np.empty((n, 6))
-        self.out = np.empty(_N_OUT)
 
 
 @_jit(f"UniTuple(float64, 4)({_M}, {_M})")

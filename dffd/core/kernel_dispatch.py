@@ -1,0 +1,142 @@
+"""Which implementation of the tracker's kernels a pass calls: numba's, or the NumPy twins.
+
+:func:`current` gives the compiled kernels (:mod:`dffd.core.kernels`, importing them on the first
+call: loading machine code from numba's cache, or compiling it on a first start) unless
+:func:`use_numpy` was called first: then the NumPy twins (:mod:`dffd.core.kernels_numpy`, same
+signatures and results to rounding) run until :func:`use_compiled` swaps the compiled ones in.
+``dffd run`` does that (``dffd.warmup.start_background``) so that a first start estimates within
+seconds while numba compiles elsewhere. A pass reads :func:`current` once, so a swap never
+splits one pass between the two implementations.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+from collections.abc import Iterator
+from typing import Literal, Protocol, cast
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["KernelSet", "active", "current", "use_compiled", "use_numpy", "using"]
+
+FloatArray = npt.NDArray[np.float64]
+F32Array = npt.NDArray[np.float32]
+
+
+class KernelSet(Protocol):
+    """The four kernels a tracker's pass calls (both modules satisfy it)."""
+
+    def normals_and_box(
+        self, pts: FloatArray, normals: FloatArray, /
+    ) -> tuple[float, float, float, float]:
+        """Outward normals into ``normals``; the bounding box."""
+
+    def sample_maps(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        pts: FloatArray,
+        normals: FloatArray,
+        s: int,
+        x0: float,
+        y0: float,
+        mapx: F32Array,
+        mapy: F32Array,
+        /,
+    ) -> None:
+        """Sample positions along every normal."""
+
+    def fit_pass(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        bx: F32Array,
+        by: F32Array,
+        has_window: bool,
+        pts: FloatArray,
+        normals: FloatArray,
+        polarity: float,
+        s: int,
+        motion: int,
+        relax: float,
+        cfg: FloatArray,
+        width: int,
+        height: int,
+        new_pts: FloatArray,
+        peaks: FloatArray,
+        mag: F32Array,
+        scratch: FloatArray,
+        design: FloatArray,
+        out: FloatArray,
+        /,
+    ) -> None:
+        """Peak search, robust fit, new contour."""
+
+    def edge_moments(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        bx: F32Array,
+        by: F32Array,
+        normals: FloatArray,
+        polarity: float,
+        s: int,
+        offset: FloatArray,
+        inlier: FloatArray,
+        sigma2_hint: float,
+        k_sigma: float,
+        min_half: float,
+        passes: int,
+        trim_fraction: float,
+        var_out: FloatArray,
+        mass_out: FloatArray,
+        pooled: FloatArray,
+        /,
+    ) -> None:
+        """Edge second moments along the normals and their pooled focus cost."""
+
+
+_active: KernelSet | None = None  # None: nothing chosen yet (the compiled kernels on first use)
+_compiled = False
+
+
+def current() -> KernelSet:
+    """The kernels to call now (imports the compiled ones if nothing was chosen yet)."""
+    impl = _active
+    return impl if impl is not None else use_compiled()
+
+
+def use_numpy() -> None:
+    """Run the NumPy twins until :func:`use_compiled` (no effect once the compiled ones run)."""
+    global _active  # noqa: PLW0603 - one process-wide choice, swapped atomically
+    if not _compiled:
+        _active = _load("dffd.core.kernels_numpy")
+
+
+def use_compiled() -> KernelSet:
+    """Import the compiled kernels (load or compile them: seconds), run them from now on."""
+    global _active, _compiled  # noqa: PLW0603 - one process-wide choice, swapped atomically
+    impl = _load("dffd.core.kernels")
+    _active = impl
+    _compiled = True
+    return impl
+
+
+def active() -> Literal["compiled", "numpy", "none"]:
+    """Which kernels :func:`current` returns now ("none": nothing imported yet)."""
+    if _compiled:
+        return "compiled"
+    return "none" if _active is None else "numpy"
+
+
+@contextlib.contextmanager
+def using(impl: KernelSet) -> Iterator[None]:
+    """Run ``impl`` inside the block (tests and benchmarks compare the two implementations)."""
+    global _active  # noqa: PLW0603 - restored on exit
+    before = _active
+    _active = impl
+    try:
+        yield
+    finally:
+        _active = before
+
+
+def _load(module: str) -> KernelSet:
+    # imported by name: importing dffd.core.kernels is what compiles, so never at module level
+    return cast(KernelSet, importlib.import_module(module))
