@@ -308,10 +308,7 @@ class ViscaLink:
         try:
             await self._connect()
         except (OSError, ValueError) as exc:
-            raise LinkDownError(
-                f"cannot open VISCA port {self.url!r} at {self.baudrate} baud: {exc}; check "
-                "that the device exists, is not in use, and that you may open it (dialout group)"
-            ) from exc
+            raise LinkDownError(_open_failure(self.url, self.baudrate, exc)) from exc
 
     async def close(self) -> None:
         """Stop background tasks, fail every waiter with LinkDownError, close the transport."""
@@ -914,3 +911,21 @@ def _fail(fut: asyncio.Future[Any], error: BaseException) -> None:
 def _add_ip_stats(a: IpStats, b: IpStats) -> IpStats:
     """Field-wise sum of two channels' counters."""
     return IpStats(**{f.name: getattr(a, f.name) + getattr(b, f.name) for f in fields(IpStats)})
+
+
+def _open_failure(url: str, baudrate: int, exc: BaseException) -> str:
+    """What went wrong opening ``url`` and what to check: the device for a serial port (the
+    dialout group grants access to it), the camera's address and network for VISCA over IP."""
+    try:
+        parsed = parse_camera_url(url)
+    except ValueError:
+        return f"cannot open VISCA port {url!r}: {exc}"
+    if parsed.transport == "serial":
+        return (
+            f"cannot open VISCA port {url!r} at {baudrate} baud: {exc}; check that the device "
+            "exists, is not in use, and that you may open it (dialout group)"
+        )
+    return (
+        f"cannot connect to the VISCA camera at {url!r} ({parsed.transport}): {exc}; check that "
+        "the camera is on, its address and port are right, and the network reaches it"
+    )
