@@ -24,8 +24,10 @@ from typing import Any
 import numpy as np
 import orjson
 
+from dffd.cli.loading import say_if_compiling
 from dffd.config import ConfigError, load_config
 from dffd.consistency import consistency_stats
+from dffd.core import kernel_dispatch
 from dffd.core.filters import KFTraceEvent
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
@@ -66,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
     except (RecordingError, LensError) as exc:
         print(f"dffd replay: {exc}", file=sys.stderr)
         return EXIT_FAILURE
+    # The inputs are good: only now load (or, on a first run, compile) the tracker's kernels.
+    say_if_compiling("replay")
+    kernel_dispatch.use_compiled()
     config = pipeline_config(settings)
     if args.known_size is not None:
         config = replace(config, known_size_m=args.known_size)

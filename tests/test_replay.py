@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -12,10 +15,15 @@ from dffd.cli import main
 from dffd.config import DffdConfig
 from dffd.core.pipeline import Pipeline
 from dffd.core.synthetic import DiscScene, closed_loop, synthetic_lens
+from dffd.exitcodes import EXIT_FAILURE
 from dffd.recording import RecordingWriter
 from dffd.wiring import pipeline_config
 
 LENS = synthetic_lens()
+REPO = Path(__file__).resolve().parent.parent
+# `dffd replay` of a missing recording: an interpreter start and the core's imports (~2-5 s on a
+# loaded 2-core machine); a compile of the kernels would take 20-40 s more.
+CLI_TIMEOUT_S = 60.0
 
 
 def approach(t: float) -> tuple[float, float, float]:
@@ -119,6 +127,25 @@ def test_replay_errors_and_exit_codes(
     with pytest.raises(SystemExit) as exc:
         main(["replay", str(run_dir)])  # --out missing: argparse usage error
     assert exc.value.code == 2
+
+
+def test_replay_checks_its_inputs_before_loading_the_kernels(tmp_path: Path) -> None:
+    # A fresh install (empty numba cache): a missing recording is reported at once, without
+    # compiling the tracker's kernels first (~30 s) and without saying that it compiles them.
+    cache = tmp_path / "numba-cache"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(REPO)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "dffd", "replay", str(tmp_path / "nothing"), "--out", "e.jsonl"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=CLI_TIMEOUT_S,
+        check=False,
+    )
+    assert proc.returncode == EXIT_FAILURE
+    assert "not found" in proc.stderr
+    assert "compil" not in proc.stderr
+    assert not cache.exists() or not any(cache.rglob("*.nbi"))
 
 
 def test_replay_config_configures_the_core(run_dir: Path, tmp_path: Path) -> None:

@@ -102,9 +102,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         # The service starts on the kernels' NumPy twins while numba compiles in a separate
         # process (seconds to a first estimate on a fresh install, not ~30 s); replay and
-        # calibrate wait for the compiled kernels (their results must not depend on timing).
+        # calibrate wait for the compiled kernels (their results must not depend on timing);
+        # replay says so itself once it has checked its inputs.
         background = args.command == "run"
-        say_if_compiling(args.command, background=background)
+        if args.command != "replay":
+            say_if_compiling(args.command, background=background)
         if background:
             from dffd.warmup import start_background
 
