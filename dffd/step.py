@@ -6,7 +6,7 @@ scores and a replay reproduces. Pure and synchronous: no I/O, no clock.
 
 Every frame with an estimate also steps the 3D trackers (:mod:`dffd.core.tracking3d`) on the
 raw channels the depth filters fuse (:mod:`dffd.core.track_feed`): the target's direction and
-image size on the frame, and each accepted burst's depth times the image size at its time — not
+image size on the frame, and each accepted burst's size measurement as the pipeline made it — not
 the fused depth, whose errors are correlated from frame to frame (docs/tracking3d.md). The service
 runs ``("mmae",)``; the bench adds ``"imm"`` and ``"cv"``.
 """
@@ -143,12 +143,13 @@ class CoreStep:
     ) -> dict[str, Track3DEstimate]:
         """Step the 3D trackers on a tracking frame with an estimate (a new target forgets the
         track); other frames with an estimate get the tracks extrapolated to their time."""
-        m = out.measurement
-        if m is not None and m.accepted and m.z_m is not None and m.sigma_m is not None:
-            # z_m is the depth at the burst's mid-time plus the pipeline's measured offset.
-            t_eff = m.t + self.pipeline.config.measurement_time_offset_s
-            self._feed.burst(t_eff, m.z_m, m.sigma_m)
         est = out.estimate
+        if est is not None and est.measured_t is not None:
+            # The frame applied a burst: the pipeline's size measurement (depth times the image
+            # size at the burst's lean-corrected time, from its per-frame size history).
+            size = self.pipeline.size_measurement
+            if size is not None:
+                self._feed.burst(*size)
         if est is None:
             if self.pipeline.state in ("idle", "acquiring"):
                 self.trackers.reset()  # released, or told to acquire: the next target is new

@@ -315,3 +315,22 @@ def test_no_burst_is_fitted_across_a_depth_jump() -> None:
 
     assert run(4.5).burst_rejections == {"depth jump during the burst": 1}
     assert not run(5.0).burst_rejections
+
+
+def test_size_measurement_is_the_applied_bursts_size_on_its_frame_only() -> None:
+    """``Pipeline.size_measurement`` (the 3D tracker's size input): ``(R, σ_R)`` on the frame
+    that applied an accepted burst, None on every other frame."""
+    pipe = Pipeline(replace(SERVICE, plan_lead_s=0.0), LENS)
+    sizes: list[tuple[float, float]] = []
+    for st in closed_loop(pipe, SCENE, LENS, circle, duration_s=6.0, seed=4):
+        e = pipe.process(st.frame, st.tag).estimate
+        if e is None:
+            continue
+        size = pipe.size_measurement
+        assert (size is not None) == (e.measured_t is not None), e.t
+        if size is not None and e.t > 2.0:  # after the coarse full-range start-up bursts
+            sizes.append(size)
+    assert len(sizes) >= 5
+    for size_m, sigma in sizes:
+        assert 0 < sigma < 0.01 * R
+        assert size_m == pytest.approx(R, abs=max(5 * sigma, 0.003 * R))

@@ -521,19 +521,31 @@ def test_unit_size_point_is_the_point_at_depth_one_over_s() -> None:
     np.testing.assert_allclose(cov, cartesian_measurement(depth, CAM)[1])
 
 
-def test_size_feed_transports_a_burst_to_its_time_by_the_image_size() -> None:
+def test_size_feed_folds_the_pipelines_burst_size_in_once_with_its_sigma_scaled() -> None:
     feed = SizeFeed(Tracker3DConfig(burst_sigma_scale=2.0))
-    # s grows from 0.006 to 0.0066 between the tracking frames at 1.0 and 1.3 s
     _, none = feed.frame(FeedFrame(1.0, (320.0, 240.0), 0.0, 0.0, 0.006), CAM)
     assert none is None
-    feed.burst(1.15, 6.0, 0.01)  # effective time 1.15: half-way, s = √(0.006·0.0066)
+    feed.burst(0.0362, 0.0001)  # replaced by the next burst before a tracking frame
+    feed.burst(0.0358, 0.0002)
     _, size = feed.frame(FeedFrame(1.3, (320.0, 240.0), 0.0, 0.0, 0.0066), CAM)
-    assert size is not None
-    s_b = math.sqrt(0.006 * 0.0066)
-    assert size[0] == pytest.approx(6.0 * s_b)
-    assert size[1] == pytest.approx((2.0 * 0.01 * s_b) ** 2)
+    assert size == pytest.approx((0.0358, (2.0 * 0.0002) ** 2))  # R needs no transport
     _, again = feed.frame(FeedFrame(1.4, (320.0, 240.0), 0.0, 0.0, 0.0066), CAM)
     assert again is None  # a burst is used once
+    feed.burst(0.0358, 0.0002)
+    feed.reset()  # a new target
+    assert feed.frame(FeedFrame(1.5, (320.0, 240.0), 0.0, 0.0, 0.0066), CAM)[1] is None
+
+
+def test_size_track_waits_for_a_precise_size_to_start() -> None:
+    tracker = Tracker3D.of_kind("mmae", Tracker3DConfig(start_size_sigma_rel=0.01))
+    size, z = 0.036, 5.0
+    unit = unit_size_point(DirectionSize((320.0, 240.0), 0.0, 0.0, size / z, 3e-4), CAM)
+    # the start-up bursts measure R to ~9 %: no track on them (R̂ and p would drift to 0)
+    assert tracker.step_size(0.0, unit, (size, (0.09 * size) ** 2)) is None
+    assert tracker.step_size(0.1, unit) is None
+    est = tracker.step_size(0.2, unit, (size, (0.002 * size) ** 2))
+    assert est is not None
+    assert est.position_m[2] == pytest.approx(z, rel=1e-6)
 
 
 def test_size_track_starts_on_a_burst_learns_the_size_and_keeps_it_across_a_gap() -> None:

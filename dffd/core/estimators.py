@@ -61,6 +61,7 @@ class EstimatorBank:
             lpv=self.lpv_gains,
         )
         self.size_meas: float | None = None  # R_m of the last accepted burst
+        self.size_meas_sigma: float | None = None  # its σ (the burst's σ_z, relative)
         self.cf2_size: float | None = cfg.cf2_nominal_size_m
         self.n_accepted = 0
         self.initialised = False
@@ -129,6 +130,7 @@ class EstimatorBank:
         s_b *= math.exp(rate * tau)
         size_m = z_m * s_b
         self.size_meas = size_m
+        self.size_meas_sigma = sigma_z * s_b
         y_now = size_m / s
         sigma_now = sigma_z * y_now / z_m
         self.n_accepted += 1

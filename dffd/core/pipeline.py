@@ -210,6 +210,16 @@ class Pipeline:
             return None
         return est[0] * self.lens.focal_length_mm / self.lens.pixel_pitch_mm
 
+    @property
+    def size_measurement(self) -> tuple[float, float] | None:
+        """``(R, σ_R)`` (m) measured by the burst applied at the last frame with an estimate —
+        its depth times the image size at its lean-corrected time (docs/estimation.md §9) — or
+        None when that frame applied none."""
+        bank = self._bank
+        if self._last_measured is None or bank.size_meas is None or bank.size_meas_sigma is None:
+            return None
+        return bank.size_meas, bank.size_meas_sigma
+
     # -- public API -------------------------------------------------------------------------
     @property
     def state(self) -> TrackState:

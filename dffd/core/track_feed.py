@@ -8,16 +8,17 @@ filters themselves fuse, each with errors close to white (docs/tracking3d.md):
 * every tracking frame: the target's direction (centroid, pan/tilt) and its normalised image
   size ``s = r·pitch/F = R/z`` — the *unit-size point* ``m`` with ``p = R m``, where the size
   ``R`` is a state of the tracker;
-* every accepted burst: the size ``R_k = z_m · s(t_b)`` — the burst's depth times the image
-  size at the burst's effective time (log-interpolated between the tracking frames around it,
-  as the pipeline transports its measurements), with σ ``s(t_b) σ_z``.
+* every accepted burst: the pipeline's own size measurement ``R_k = z_m · s(t_b + τ̂)`` — the
+  burst's depth times the image size at its effective time, read from the pipeline's per-frame
+  size history and corrected for the burst's lean ``τ̂`` (:attr:`Pipeline.size_measurement`),
+  with σ ``c · s σ_z``. ``R`` is a constant, so the measurement needs no transport: it is
+  folded in at the next tracking frame.
 
-Pure: the caller hands in times, pixels, angles and depths.
+Pure: the caller hands in times, pixels, angles and sizes.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,28 +41,27 @@ class FeedFrame:
 
 
 class SizeFeed:
-    """Turns tracking frames and burst depths into :meth:`Tracker3D.step_size` arguments."""
+    """Turns tracking frames and burst sizes into :meth:`Tracker3D.step_size` arguments."""
 
     def __init__(self, config: Tracker3DConfig) -> None:
         self.config = config
-        self._pending: tuple[float, float, float] | None = None  # (t, z_m, σ_z) of a burst
-        self._prev: tuple[float, float] | None = None  # (t, s) of the last tracking frame
+        self._pending: tuple[float, float] | None = None  # (R, σ_R) of the last burst
 
     def reset(self) -> None:
-        """Forget the pending burst and the last frame (a new target)."""
+        """Forget the pending burst (a new target)."""
         self._pending = None
-        self._prev = None
 
-    def burst(self, t: float, z_m: float, sigma_z_m: float) -> None:
-        """An accepted burst: the depth ``z_m`` (σ) at its effective time ``t`` (the burst's
-        mid-time plus the pipeline's ``measurement_time_offset_s``); used at the next tracking
-        frame."""
-        self._pending = (t, z_m, sigma_z_m)
+    def burst(self, size_m: float, sigma_m: float) -> None:
+        """An accepted burst's size ``R`` (m) and its σ, as the pipeline measured it
+        (:attr:`dffd.core.pipeline.Pipeline.size_measurement`); used at the next tracking frame
+        (a later burst before it replaces it)."""
+        self._pending = (size_m, sigma_m)
 
     def frame(
         self, frame: FeedFrame, camera: CameraModel
     ) -> tuple[tuple[FloatArray, FloatArray], tuple[float, float] | None]:
-        """The frame's unit-size point ``(m, Σ_m)`` and the pending burst's ``(R, σ_R²)``."""
+        """The frame's unit-size point ``(m, Σ_m)`` and the pending burst's ``(R, σ_R²)``, its σ
+        scaled by ``burst_sigma_scale``."""
         cfg = self.config
         meas = DirectionSize(
             frame.centroid_px,
@@ -75,19 +75,8 @@ class SizeFeed:
         unit = unit_size_point(meas, camera)
         size: tuple[float, float] | None = None
         if self._pending is not None:
-            t_b, z_m, sigma_z = self._pending
+            size_m, sigma_m = self._pending
             self._pending = None
-            s_b = self._size_at(t_b, frame.t, frame.size_ratio)
-            sigma_r = cfg.burst_sigma_scale * sigma_z * s_b
-            size = (z_m * s_b, sigma_r * sigma_r)
-        self._prev = (frame.t, frame.size_ratio)
+            sigma_r = cfg.burst_sigma_scale * sigma_m
+            size = (size_m, sigma_r * sigma_r)
         return unit, size
-
-    def _size_at(self, t_b: float, t_now: float, s_now: float) -> float:
-        """``s`` at ``t_b``, log-interpolated between the last and this tracking frame (at most
-        one step extrapolated), as :class:`dffd.core.pipeline.Pipeline` transports a burst."""
-        if self._prev is None or not self._prev[0] < t_now:
-            return s_now
-        t0, s0 = self._prev
-        w = min(max((t_b - t0) / (t_now - t0), -1.0), 1.0)
-        return math.exp((1.0 - w) * math.log(s0) + w * math.log(s_now))

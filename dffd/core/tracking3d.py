@@ -144,12 +144,17 @@ class Tracker3DConfig:
     # target seen at a changing angle, a residual magnification error): 10⁻⁶ m (3·10⁻⁵ of a
     # 36 mm target) per √s (swept 0, 10⁻¹³, 10⁻¹², 10⁻¹¹ on the reference optics).
     q_size_m2_s: float = 1e-12
+    # A track starts only on a burst size this precise (σ_R/R, after burst_sigma_scale). With a
+    # vaguer size the pseudo-measurement p − R m = 0 drags R̂ and p together towards 0 (its
+    # noise R̂² Σ_m shrinks with them): the start-up bursts spanning the working range measure R
+    # to 9-18 % and put the track metres off (stop-and-go, reference optics).
+    start_size_sigma_rel: float = 0.01
     # Measurement noise of the size-state feed (dffd.core.track_feed). Measured on the reference
     # optics only (hil run --optics reference, steady state, against the simulator's truth):
     sigma_size_rel: float = 3e-4  # σ of s/s on tracking frames (R = s·z_true scatters 2·10⁻⁴)
     sigma_px: float = 0.3  # centroid σ per axis
     sigma_angle_deg: float = 0.03  # pan/tilt of the tag (dead-reckoned head model) per axis
-    burst_sigma_scale: float = 2.0  # a burst's z_m errors over its published σ
+    burst_sigma_scale: float = 2.0  # the pipeline size measurements' errors over their σ: 2.0-2.5
 
     def bank(self) -> list[MotionModel]:
         """The multiple-model bank: CV, CA, CT."""
@@ -381,6 +386,8 @@ class Tracker3D:
                 size = self._size
             if unit is None or size is None:
                 return None
+            if size[1] > (self.config.start_size_sigma_rel * size[0]) ** 2:
+                return None  # too vague a size to start on (start_size_sigma_rel)
             self._start(t, size[0] * unit[0], size[0] ** 2 * unit[1])
             self._start_size(unit[0], size)
             return self.estimate()
