@@ -58,6 +58,9 @@ _DT_CACHE = 16
 # error is the lateral acceleration error over the speed, and the CA model's acceleration is
 # uncertain to ~0.05 m/s² — at 0.2 m/s that is already 0.25 rad/s. Regularised by max(|v_h|, this).
 MIN_TURN_SPEED_M_S = 0.2
+# kron(block, I₃) as a scatter: block[i, j] lands at (3i + k, 3j + k) for k = 0, 1, 2.
+_KRON_ROWS = np.array([3 * i + k for i in range(3) for j in range(3) for k in range(3)])
+_KRON_COLS = np.array([3 * j + k for i in range(3) for j in range(3) for k in range(3)])
 
 
 class MotionModel(Protocol):
@@ -136,34 +139,37 @@ class CoordinatedTurn:
         # ∫₀^dt R(ωτ) dτ = dt (f1 + i f2), whose ω-derivative is dt² (d1 + i d2).
         m_re, m_im = dt * f1, dt * f2
         dm_re, dm_im = dt * dt * d1, dt * dt * d2
-        vx, vz = float(x[_VX]), float(x[_VZ])
+        xl = x.tolist()  # plain floats: ~100 scalar writes cost less on a list than an array
+        vx, vz = xl[_VX], xl[_VZ]
         nvx, nvz = c * vx - s * vz, s * vx + c * vz  # R v_h
         jvx, jvz = -nvz, nvx  # J R v_h
 
-        out = x.copy()
-        out[_PX] = x[_PX] + m_re * vx - m_im * vz
-        out[_PZ] = x[_PZ] + m_im * vx + m_re * vz
+        out = list(xl)
+        out[_PX] = xl[_PX] + m_re * vx - m_im * vz
+        out[_PZ] = xl[_PZ] + m_im * vx + m_re * vz
         out[_VX], out[_VZ] = nvx, nvz
         out[_AX], out[_AZ] = omega * jvx, omega * jvz
-        out[_PY] = x[_PY] + dt * x[_VY]
+        out[_PY] = xl[_PY] + dt * xl[_VY]
         out[_AY] = 0.0
 
-        f = np.zeros((STATE_DIM, STATE_DIM))
-        f[_PX, _PX] = f[_PZ, _PZ] = f[_PY, _PY] = f[_VY, _VY] = f[OMEGA, OMEGA] = 1.0
-        f[_PY, _VY] = dt
+        f = [0.0] * (STATE_DIM * STATE_DIM)  # row-major STATE_DIM × STATE_DIM
+        for i in (_PX, _PZ, _PY, _VY, OMEGA):
+            f[i * STATE_DIM + i] = 1.0
+        f[_PY * STATE_DIM + _VY] = dt
         _set_complex(f, _PX, _PZ, _VX, _VZ, m_re, m_im)
         _set_complex(f, _VX, _VZ, _VX, _VZ, c, s)
         _set_complex(f, _AX, _AZ, _VX, _VZ, -omega * s, omega * c)  # ω J R = ω i (c + i s)
-        f[_PX, OMEGA] = dm_re * vx - dm_im * vz
-        f[_PZ, OMEGA] = dm_im * vx + dm_re * vz
-        f[_VX, OMEGA], f[_VZ, OMEGA] = dt * jvx, dt * jvz  # dR/dω = dt J R
+        f[_PX * STATE_DIM + OMEGA] = dm_re * vx - dm_im * vz
+        f[_PZ * STATE_DIM + OMEGA] = dm_im * vx + dm_re * vz
+        # dR/dω = dt J R
+        f[_VX * STATE_DIM + OMEGA], f[_VZ * STATE_DIM + OMEGA] = dt * jvx, dt * jvz
         # d(ω J R v)/dω = J R v + ω J (dt J R v) = J R v − ω dt R v   (J² = −I)
-        f[_AX, OMEGA] = jvx - omega * dt * nvx
-        f[_AZ, OMEGA] = jvz - omega * dt * nvz
+        f[_AX * STATE_DIM + OMEGA] = jvx - omega * dt * nvx
+        f[_AZ * STATE_DIM + OMEGA] = jvz - omega * dt * nvz
 
         qpp, qpv_re, qpv_im = _turn_noise(theta, dt)
         qd = self.q
-        q = np.zeros((STATE_DIM, STATE_DIM))
+        q = [0.0] * (STATE_DIM * STATE_DIM)
         # cov(p_h, v_h) = q (qpv_re + i qpv_im); cov(v_h, v_h) = q dt; the acceleration
         # a_h = ω J v_h carries the velocity noise mapped by ω J (= ω i).
         _set_complex(q, _PX, _PZ, _PX, _PZ, qd * qpp, 0.0)
@@ -175,11 +181,12 @@ class CoordinatedTurn:
         _set_complex(q, _VX, _VZ, _AX, _AZ, 0.0, -qd * dt * omega)
         _set_complex(q, _AX, _AZ, _AX, _AZ, qd * dt * omega * omega, 0.0)
         _mirror_upper(q, (_PX, _PZ, _VX, _VZ, _AX, _AZ))
-        q[_PY, _PY] = qd * dt**3 / 3.0
-        q[_PY, _VY] = q[_VY, _PY] = qd * dt**2 / 2.0
-        q[_VY, _VY] = qd * dt
-        q[OMEGA, OMEGA] = self.q_omega * dt
-        return out, f, q
+        q[_PY * STATE_DIM + _PY] = qd * dt**3 / 3.0
+        q[_PY * STATE_DIM + _VY] = q[_VY * STATE_DIM + _PY] = qd * dt**2 / 2.0
+        q[_VY * STATE_DIM + _VY] = qd * dt
+        q[OMEGA * STATE_DIM + OMEGA] = self.q_omega * dt
+        shape = (STATE_DIM, STATE_DIM)
+        return np.array(out), np.array(f).reshape(shape), np.array(q).reshape(shape)
 
     def angular_speed(self, x: FloatArray) -> float:
         """The turn-rate state."""
@@ -222,8 +229,9 @@ def _per_axis(block_f: FloatArray, block_q: FloatArray) -> tuple[FloatArray, Flo
     """Lift a 3×3 (p, v, a) block to the 10-state, same on every axis; ω carried, noiseless."""
     f = np.zeros((STATE_DIM, STATE_DIM))
     q = np.zeros((STATE_DIM, STATE_DIM))
-    f[:9, :9] = np.kron(block_f, np.eye(3))
-    q[:9, :9] = np.kron(block_q, np.eye(3))
+    # kron(block, I₃) written in place: element (3i + k, 3j + k) = block[i, j].
+    f[_KRON_ROWS, _KRON_COLS] = np.repeat(block_f, 3, axis=1).ravel()
+    q[_KRON_ROWS, _KRON_COLS] = np.repeat(block_q, 3, axis=1).ravel()
     f[OMEGA, OMEGA] = 1.0
     f.flags.writeable = False  # shared through the cache
     q.flags.writeable = False
@@ -268,17 +276,19 @@ def _turn_noise(theta: float, dt: float) -> tuple[float, float, float]:
 
 
 def _set_complex(  # noqa: PLR0917 - a block address and a complex value
-    m: FloatArray, r0: int, r1: int, c0: int, c1: int, re: float, im: float
+    m: list[float], r0: int, r1: int, c0: int, c1: int, re: float, im: float
 ) -> None:
-    """Write the 2×2 block of the complex number re + i·im (= re I + im J) at rows/columns."""
-    m[r0, c0] = re
-    m[r0, c1] = -im
-    m[r1, c0] = im
-    m[r1, c1] = re
+    """Write the 2×2 block of the complex number re + i·im (= re I + im J) at rows/columns of
+    the row-major STATE_DIM × STATE_DIM matrix ``m``."""
+    m[r0 * STATE_DIM + c0] = re
+    m[r0 * STATE_DIM + c1] = -im
+    m[r1 * STATE_DIM + c0] = im
+    m[r1 * STATE_DIM + c1] = re
 
 
-def _mirror_upper(m: FloatArray, order: tuple[int, ...]) -> None:
-    """Fill the blocks below the diagonal (in ``order``) from those above: ``m = mᵀ`` there."""
+def _mirror_upper(m: list[float], order: tuple[int, ...]) -> None:
+    """Fill the blocks below the diagonal (in ``order``) from those above: ``m = mᵀ`` there
+    (row-major STATE_DIM × STATE_DIM ``m``)."""
     for i, a in enumerate(order):
         for b in order[i + 1 :]:
-            m[b, a] = m[a, b]
+            m[b * STATE_DIM + a] = m[a * STATE_DIM + b]

@@ -34,15 +34,17 @@ frame's own ``dt``.
 The combined output is the probability-weighted mean and the spread-of-the-means covariance;
 the angular speed is the probability-weighted turn rate of the models (0 for CV, the kinematic
 ``(v × a)·u/|v_h|²`` for CA, the state for CT). Numerics: Joseph-form updates, covariances
-symmetrised after every step, innovation covariances factorised by Cholesky, likelihoods in log
-space. Frames are documented in ``docs/tracking3d.md``.
+symmetrised after every step, the 3×3 innovation covariances inverted by cofactors, likelihoods
+in log space; the models' steps stacked in one set of NumPy calls where the shapes allow (pinned
+on a recorded run: tests/test_core_tracking3d_trace.py). Frames are documented in
+``docs/tracking3d.md``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -70,6 +72,7 @@ TrackerKind = Literal["mmae", "imm", "cv"]
 TRACKER_KINDS: tuple[TrackerKind, ...] = ("mmae", "imm", "cv")
 
 _LOG_2PI = math.log(2.0 * math.pi)
+_POS_IDX = np.arange(3)  # the position's indices in the state (diagonal gathers)
 
 
 @dataclass(frozen=True, slots=True)
@@ -249,13 +252,16 @@ def direction_rate_deg_s(est: Track3DEstimate) -> tuple[float, float]:
 
 def mmae_probabilities(prior: FloatArray, log_likelihoods: FloatArray, floor: float) -> FloatArray:
     """Bayes' rule in log space, ``μ_j ∝ μ_j L_j``, then every μ raised to ``floor``."""
-    with np.errstate(divide="ignore"):
-        log_post = np.log(prior) + log_likelihoods
-    log_post -= np.max(log_post)
-    post = np.exp(log_post)
-    post /= post.sum()
-    post = np.maximum(post, floor)
-    return np.asarray(post / post.sum(), dtype=np.float64)
+    # A handful of models: plain floats (NumPy's per-call cost dominates at this size).
+    log_post = [
+        math.log(p) + ll if p > 0.0 else -math.inf
+        for p, ll in zip(prior.tolist(), log_likelihoods.tolist(), strict=True)
+    ]
+    top = max(log_post)
+    post = [math.exp(v - top) for v in log_post]
+    total = sum(post)
+    post = [max(v / total, floor) for v in post]
+    return np.asarray(post, dtype=np.float64) / sum(post)
 
 
 def markov_matrix(n: int, rate_hz: float, dt: float) -> FloatArray:
@@ -313,6 +319,10 @@ class Tracker3D:
         self._t: float | None = None
         self._size: tuple[float, float] | None = None  # (R̂, var) of the last size track
         self._last: Track3DEstimate | None = None  # the last step's output
+        # Stacked (n, d, d) transition and noise matrices of _predict, reused every step (the
+        # size row and column of F stay those of the identity).
+        self._fq = (np.zeros((n, TRACK_DIM, TRACK_DIM)), np.zeros((n, TRACK_DIM, TRACK_DIM)))
+        self._fq[0][:, SIZE, SIZE] = 1.0
 
     @classmethod
     def of_kind(cls, kind: TrackerKind, config: Tracker3DConfig | None = None) -> Tracker3D:
@@ -410,12 +420,21 @@ class Tracker3D:
         if est is None or not 0.0 <= t - est.t <= self.config.max_gap_s:
             return None
         dt = t - est.t
-        p, v, a = est.position_m, est.velocity_m_s, est.acceleration_m_s2
-        return replace(
-            est,
-            t=t,
-            position_m=_vec3(np.add(p, np.multiply(v, dt) + np.multiply(a, 0.5 * dt * dt))),
-            velocity_m_s=_vec3(np.add(v, np.multiply(a, dt))),
+        h = 0.5 * dt * dt
+        (px, py, pz), (vx, vy, vz), (ax, ay, az) = (
+            est.position_m,
+            est.velocity_m_s,
+            est.acceleration_m_s2,
+        )
+        # p + (v dt + a dt²/2), v + a dt: in floats, the same operations as NumPy's.
+        return Track3DEstimate(
+            t,
+            (px + (vx * dt + ax * h), py + (vy * dt + ay * h), pz + (vz * dt + az * h)),
+            (vx + ax * dt, vy + ay * dt, vz + az * dt),
+            est.acceleration_m_s2,
+            est.angular_speed_rad_s,
+            est.position_sigma_m,
+            est.model_probabilities,
         )
 
     def estimate(self) -> Track3DEstimate | None:
@@ -423,22 +442,26 @@ class Tracker3D:
         if self._t is None:
             return None
         mu = self._mu
-        x = mu @ self._x
-        d = self._x[:, POS] - x[POS]
-        pp = np.einsum("j,jab->ab", mu, self._p[:, POS, POS]) + (d.T * mu) @ d
-        omega = sum(
-            float(m) * model.angular_speed(xi)
-            for m, model, xi in zip(mu, self.models, self._x, strict=True)
-        )
-        sig = np.sqrt(np.maximum(np.diag(pp), 0.0))
+        xs = self._x
+        x = mu @ xs
+        # Only the diagonal of the combined position covariance Σ μ_j (P_j + d_j d_jᵀ) is
+        # published (σ per axis): computed alone, as plain floats where NumPy calls cost more.
+        d = xs[:, POS] - x[POS]
+        var = mu @ self._p[:, _POS_IDX, _POS_IDX] + mu @ (d * d)
+        mus = mu.tolist()
+        omega = 0.0
+        for m, model, xi in zip(mus, self.models, xs, strict=True):
+            omega += m * model.angular_speed(xi)
+        xl = x.tolist()
+        sig = [math.sqrt(max(v, 0.0)) for v in var.tolist()]
         self._last = Track3DEstimate(
             t=self._t,
-            position_m=_vec3(x[POS]),
-            velocity_m_s=_vec3(x[VEL]),
-            acceleration_m_s2=_vec3(x[ACC]),
-            angular_speed_rad_s=float(omega),
-            position_sigma_m=_vec3(sig),
-            model_probabilities=self.probabilities,
+            position_m=(xl[0], xl[1], xl[2]),
+            velocity_m_s=(xl[3], xl[4], xl[5]),
+            acceleration_m_s2=(xl[6], xl[7], xl[8]),
+            angular_speed_rad_s=omega,
+            position_sigma_m=(sig[0], sig[1], sig[2]),
+            model_probabilities=dict(zip(self.names, mus, strict=True)),
         )
         return self._last
 
@@ -488,20 +511,18 @@ class Tracker3D:
         if self.method == "imm" and len(self.models) > 1:
             pi = markov_matrix(len(self.models), self.config.switch_rate_hz, dt)
             xs, ps, self._mu = imm_mix(xs, ps, self._mu, pi)
-        new_x, new_p = np.empty_like(xs), np.empty_like(ps)
+        # F = diag(F_model, 1) and Q = diag(Q_model, q_size dt): the size is carried by every
+        # model. All models in one stacked product (one NumPy call instead of one per model).
+        fs, qs = self._fq
+        new_x = np.empty_like(xs)
         n = STATE_DIM
-        q_size = self.config.q_size_m2_s * dt
         for j, model in enumerate(self.models):
-            new_x[j, :n], f, q = model.predict(xs[j, :n], dt)
-            new_x[j, SIZE] = xs[j, SIZE]
-            # F = diag(F_model, 1): the size is carried by every model.
-            fp = f @ ps[j, :n, :]
-            pj = new_p[j]
-            pj[:n, :n] = fp[:, :n] @ f.T + q
-            pj[:n, SIZE] = pj[SIZE, :n] = fp[:, SIZE]
-            pj[SIZE, SIZE] = ps[j, SIZE, SIZE] + q_size
-            new_p[j] = _sym(pj)
-        self._x, self._p = new_x, new_p
+            new_x[j, :n], fs[j, :n, :n], qs[j, :n, :n] = model.predict(xs[j, :n], dt)
+        new_x[:, SIZE] = xs[:, SIZE]
+        qs[:, SIZE, SIZE] = self.config.q_size_m2_s * dt
+        new_p = fs @ ps @ fs.transpose(0, 2, 1)
+        new_p += qs
+        self._x, self._p = new_x, _sym_stack(new_p)
 
     def _update_models(
         self, update: Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray, float]]
@@ -622,9 +643,7 @@ def _unit_update_all(
     pht = ps[:, :, POS] - ps[:, :, SIZE, None] * m  # (n, d, 3) = P Hᵀ
     rn = (size * size)[:, None, None] * sigma_m  # (n, 3, 3)
     s = pht[:, POS, :] - m[:, None] * pht[:, SIZE, None, :] + rn
-    s = 0.5 * (s + s.transpose(0, 2, 1))
-    s_inv = np.linalg.inv(s)
-    _, logdet = np.linalg.slogdet(s)
+    s_inv, logdet = _inv3_logdet_stack(s)
     maha = np.einsum("ni,nij,nj->n", nu, s_inv, nu)
     loglik = -0.5 * (maha + logdet + 3.0 * _LOG_2PI)
     gain = pht @ s_inv  # (n, d, 3)
@@ -660,8 +679,34 @@ def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
     return inv, math.log(det)
 
 
+def _inv3_logdet_stack(s: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Inverses and log-determinants of a (n, 3, 3) stack, symmetrised first, by cofactors
+    (:func:`_inv3_logdet` per matrix: a few models, where ``np.linalg`` costs more per call)."""
+    invs: list[list[list[float]]] = []
+    logdets: list[float] = []
+    for (a, b0, c0), (b1, d, e0), (c1, e1, f) in s.tolist():
+        # 0.5 (S + Sᵀ) element by element, as the per-model update symmetrises.
+        b, c, e = 0.5 * (b0 + b1), 0.5 * (c0 + c1), 0.5 * (e0 + e1)
+        c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+        det = a * c00 + b * c01 + c * c02
+        if not det > 0.0:
+            raise np.linalg.LinAlgError(f"innovation covariance is not positive definite: {s!r}")
+        c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+        invs.append([[c00 / det, c01 / det, c02 / det], [c01 / det, c11 / det, c12 / det],
+                     [c02 / det, c12 / det, c22 / det]])  # fmt: skip
+        logdets.append(math.log(det))
+    return np.array(invs), np.array(logdets)
+
+
 def _sym(m: FloatArray) -> FloatArray:
     return np.asarray(0.5 * (m + m.T), dtype=np.float64)
+
+
+def _sym_stack(m: FloatArray) -> FloatArray:
+    """``_sym`` of every matrix of a (n, d, d) stack."""
+    out = m + m.transpose(0, 2, 1)
+    out *= 0.5
+    return out
 
 
 def _vec3(v: FloatArray) -> Vec3:
