@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
+from scipy.interpolate import PchipInterpolator
 
 from dffd.core.lens import Lens, LensError
 from dffd.core.synthetic import synthetic_lens
@@ -77,3 +79,23 @@ def test_missing_file_and_bad_toml(tmp_path: Path) -> None:
     empty.write_text("x = 1\n")
     with pytest.raises(LensError, match=r"\[lens\]"):
         Lens.from_toml(empty)
+
+
+@pytest.mark.parametrize("lens", [Lens.from_toml(SIM_LENS), synthetic_lens()], ids=["sim", "synth"])
+def test_scalar_conversions_are_bit_identical_to_scipy_pchip(lens: Lens) -> None:
+    # The scalar evaluator replaces SciPy's per-call cost; it must not move a value by one bit.
+    counts = np.asarray(lens.focus_counts, dtype=np.float64)
+    v = np.asarray(lens.focus_v_mm, dtype=np.float64)
+    order = np.argsort(v)
+    to_v = PchipInterpolator(counts, v, extrapolate=False)
+    to_counts = PchipInterpolator(v[order], counts[order], extrapolate=False)
+    rng = np.random.default_rng(7)
+    lo, hi = lens.counts_range
+    cs = np.concatenate([counts, rng.uniform(lo, hi, 3000), [lo - 10.0, hi + 10.0]])
+    for c in cs:
+        assert lens.v_from_counts(float(c)) == float(to_v(min(max(c, lo), hi)))
+    vmin, vmax = lens.v_range_mm
+    for vv in np.concatenate([v, rng.uniform(vmin, vmax, 3000), [vmin - 0.1, vmax + 0.1]]):
+        exact = float(to_counts(min(max(vv, vmin), vmax)))
+        assert lens.counts_from_v(float(vv)) == round(exact)
+        assert lens._counts_at(min(max(float(vv), vmin), vmax)) == exact  # before rounding

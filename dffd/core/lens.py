@@ -7,6 +7,7 @@ depths handed to the rest of the core.
 
 from __future__ import annotations
 
+import bisect
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -38,6 +39,10 @@ class Lens:
     zoom_counts: int | None = None
     _to_v: PchipInterpolator = field(init=False, repr=False)
     _to_counts: PchipInterpolator = field(init=False, repr=False)
+    # The same interpolants evaluated one scalar at a time without SciPy's per-call overhead
+    # (the core converts a few values on every frame).
+    _v_at: _ScalarPchip = field(init=False, repr=False)
+    _counts_at: _ScalarPchip = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -48,6 +53,8 @@ class Lens:
         object.__setattr__(
             self, "_to_counts", PchipInterpolator(v[order], counts[order], extrapolate=False)
         )
+        object.__setattr__(self, "_v_at", _ScalarPchip(self._to_v))
+        object.__setattr__(self, "_counts_at", _ScalarPchip(self._to_counts))
 
     # -- construction -----------------------------------------------------------------------
     @classmethod
@@ -140,7 +147,7 @@ class Lens:
     def v_from_counts(self, counts: float) -> float:
         """Lens-to-sensor distance (mm) at ``counts``; clamps to the table range."""
         lo, hi = self.counts_range
-        return float(self._to_v(min(max(float(counts), lo), hi)))
+        return self._v_at(min(max(float(counts), lo), hi))
 
     def v_from_counts_array(self, counts: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Vectorised :meth:`v_from_counts`."""
@@ -151,7 +158,7 @@ class Lens:
     def counts_from_v(self, v_mm: float) -> int:
         """Nearest focus counts (rounded) for ``v_mm``; clamps to the table range."""
         vmin, vmax = self.v_range_mm
-        return round(float(self._to_counts(min(max(v_mm, vmin), vmax))))
+        return round(self._counts_at(min(max(v_mm, vmin), vmax)))
 
     def depth_from_v(self, v_mm: float) -> float:
         """Thin lens (1): depth z (m) in focus at lens-to-sensor distance ``v_mm``."""
@@ -181,6 +188,39 @@ class Lens:
         """Blur-circle radius (px) for setting ``v0`` when ``v`` is sharp (design.md §3)."""
         aperture = self.focal_length_mm / f_number
         return 0.5 * aperture * abs(v0_mm - v_mm) / v_mm / self.pixel_pitch_mm
+
+
+class _ScalarPchip:
+    """A SciPy piecewise polynomial (no extrapolation) evaluated at one float in Python.
+
+    The same arithmetic as ``scipy.interpolate.PPoly.__call__`` (interval ``x_i <= x < x_{i+1}``,
+    the last one closed; ``Σ_k c[K−1−k] s^k`` accumulated from the constant term with
+    ``s = x − x_i``; NaN outside), so the values are bit-identical (tests/test_core_lens.py) at a
+    few percent of its per-call cost.
+    """
+
+    __slots__ = ("_coeffs", "_x")
+
+    def __init__(self, poly: PchipInterpolator) -> None:
+        self._x: list[float] = [float(b) for b in poly.x]
+        # Per interval, the coefficients from the constant term up.
+        self._coeffs = [[float(c) for c in poly.c[::-1, i]] for i in range(poly.c.shape[1])]
+
+    def __call__(self, xval: float) -> float:
+        x = self._x
+        if not x[0] <= xval <= x[-1]:
+            return math.nan
+        i = min(bisect.bisect_right(x, xval) - 1, len(x) - 2)
+        s = xval - x[i]
+        res = 0.0
+        z = 1.0
+        coeffs = self._coeffs[i]
+        last = len(coeffs) - 1
+        for k, c in enumerate(coeffs):
+            res = res + c * z
+            if k < last:
+                z *= s
+        return res
 
 
 def _number(value: object, name: str, source: str) -> float:
