@@ -2,13 +2,15 @@
 
 The frames come from the reference simulator in lock-step (``hil.lockstep.run_session``: the
 product's scheduler drives pan/tilt and focus, so the stream holds track, burst and transit
-frames of a moving target, with pan/tilt re-centring jumps). A second, fresh
-:class:`~dffd.core.pipeline.Pipeline` consumes the same frames and tags as the harness's own, and
-each call is timed with the calling thread's CPU time (``time.thread_time_ns``), OpenCV
-single-threaded, by role: ``track``, ``burst``, ``transit`` while tracking, and ``acquire`` (every
-frame while the bench's pipeline is acquiring or lost; it is sent back to whole-frame acquisition
-every ``ACQUIRE_EVERY_FRAMES`` timed frames). On every tracking frame the two baselines run on
-the same frame:
+frames of a moving target, with pan/tilt re-centring jumps). A second, fresh core — the
+service's own: :class:`~dffd.step.CoreStep` with the 3D trackers the service runs
+(:data:`dffd.step.SERVICE_TRACKERS`, the published MMAE; the lock-step harness's own core steps
+the comparison trackers outside the timed call) — consumes the same frames and tags as the
+harness's own, and each call is timed with the calling thread's CPU time
+(``time.thread_time_ns``), OpenCV single-threaded, by role: ``track``, ``burst``, ``transit``
+while tracking, and ``acquire`` (every frame while the bench's pipeline is acquiring or lost; it
+is sent back to whole-frame acquisition every ``ACQUIRE_EVERY_FRAMES`` timed frames). On every
+tracking frame the two baselines run on the same frame:
 
 * **naive** — what design.md §10 names: a straightforward implementation without the neighbourhood
   optimisation. Full-frame gradient magnitude in float64 NumPy (``np.gradient``), full-frame
@@ -45,7 +47,7 @@ from dffd.core.contour import outward_normals, resample_closed
 from dffd.core.focus import focus_cost
 from dffd.core.lens import Lens
 from dffd.core.types import FrameTag
-from dffd.step import CoreStep
+from dffd.step import SERVICE_TRACKERS, CoreStep
 from drivers.frames import Frame
 from drivers.sim.source import FrameTruth
 
@@ -104,7 +106,10 @@ class _Bench:
         self.fps = session.fps
         self.frame_size = session.frame_size
         self.lens = Lens.from_toml(session.lens_path)
-        self.core_step = CoreStep.build(pipeline_config(self.scenario, daemon_config()), self.lens)
+        # What users run: the service's trackers only (the comparison kinds are not timed).
+        self.core_step = CoreStep.build(
+            pipeline_config(self.scenario, daemon_config()), self.lens, SERVICE_TRACKERS
+        )
         self.pipeline = self.core_step.pipeline
         self.frames = frames
         self.seen = 0
@@ -161,8 +166,9 @@ class _Bench:
         r = np.asarray(self.r_px)
         return {
             "schema": 3,
-            "what": "estimator CPU (thread time) per tracking frame, 640x480, 64 normals, frames "
-            "of the reference simulator in lock-step",
+            "what": "service core CPU (thread time: pipeline + the service's 3D trackers) per "
+            "frame, 640x480, 64 normals, frames of the reference simulator in lock-step",
+            "trackers": list(self.core_step.trackers.kinds),
             "scenario": self.scenario.name,
             "seed": self.seed,
             "frame_size": list(self.frame_size),

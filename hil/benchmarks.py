@@ -34,12 +34,13 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
 
 from hil.bench_table import figure, write_readme
 
-__all__ = ["BENCH_SCHEMA", "figures_from", "run_bench", "write_readme"]
+__all__ = ["BENCH_SCHEMA", "PARTS", "figures_from", "run_bench", "write_readme"]
 
 logger = logging.getLogger(__name__)
 
@@ -76,10 +77,24 @@ HELP_GOAL_S = 0.3
 RSS_SLOPE_GOAL_MIB_H = 1.0
 DEPTH_RATIO_GOAL = 0.95
 ESTIMATE_RATE_HZ = 30.0
+# What ``python -m hil bench --only`` can select, and the part each component process is in.
+PARTS = ("core", "publish", "soak", "cli", "visca", "render", "depth", "replay")
+_COMPONENT_PART = {
+    "bench_core": "core",
+    "bench_publish": "publish",
+    "bench_cli": "cli",
+    "bench_visca": "visca",
+    "bench_render": "render",
+}
 
 
-def run_bench(out_dir: Path, *, quick: bool = False) -> int:
-    """Run every benchmark, print the figures and write ``out_dir/bench.json``."""
+def run_bench(out_dir: Path, *, quick: bool = False, only: Sequence[str] | None = None) -> int:
+    """Run every benchmark (or the ``only`` parts of :data:`PARTS`), print the figures and
+    write ``out_dir/bench.json`` (a partial run says which parts it holds under ``only``)."""
+    unknown = sorted(set(only or ()) - set(PARTS))
+    if unknown:
+        raise ValueError(f"unknown bench part(s) {unknown}: choose from {', '.join(PARTS)}")
+    parts = set(only) if only else set(PARTS)
     out_dir.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
     soak_s = QUICK_SOAK_S if quick else SOAK_S
@@ -91,19 +106,27 @@ def run_bench(out_dir: Path, *, quick: bool = False) -> int:
         "bench_render": ["--frames", "30" if quick else "300"],
     }
     raw: dict[str, Any] = {}
+    skipped = {"skipped": "not in --only"}
     for name, args in components.items():
+        if _COMPONENT_PART[name] not in parts:
+            raw[name] = skipped
+            continue
         raw[name] = _component(f"hil.{name}", [*args, "--out", str(out_dir / f"{name}.json")])
-    raw["soak"] = _soak(out_dir / "soak", soak_s, fresh=False)
+    raw["soak"] = _soak(out_dir / "soak", soak_s, fresh=False) if "soak" in parts else skipped
     # The empty-cache start compiles every kernel (~15-25 s): the full run only.
-    raw["soak_fresh"] = (
-        {"skipped": "--quick"} if quick else _soak(out_dir / "soak-fresh", 1.0, fresh=True)
-    )
-    raw["depth_rate"] = _depth_rates(quick)
-    raw["replay"] = _replay(quick)
-    figures = figures_from(raw)
+    if "soak" not in parts:
+        raw["soak_fresh"] = skipped
+    else:
+        raw["soak_fresh"] = (
+            {"skipped": "--quick"} if quick else _soak(out_dir / "soak-fresh", 1.0, fresh=True)
+        )
+    raw["depth_rate"] = _depth_rates(quick) if "depth" in parts else skipped
+    raw["replay"] = _replay(quick) if "replay" in parts else skipped
+    figures = figures_from(raw, parts)
     doc = {
         "schema": BENCH_SCHEMA,
         "quick": quick,
+        "only": sorted(parts) if only else None,
         "t": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "commit": _commit(),
         # Other work on the machine slows every figure; the 1/5/15-minute load averages say how
@@ -125,8 +148,9 @@ def run_bench(out_dir: Path, *, quick: bool = False) -> int:
     return 0
 
 
-def figures_from(raw: dict[str, Any]) -> list[dict[str, Any]]:
-    """Every figure from the components' raw results (a missing component gives None values)."""
+def figures_from(raw: dict[str, Any], parts: Collection[str] = PARTS) -> list[dict[str, Any]]:
+    """Every figure from the components' raw results (a missing component gives None values);
+    only the figures of ``parts`` (:data:`PARTS`)."""
     part = {
         k: raw.get(k) or {}
         for k in (
@@ -134,15 +158,17 @@ def figures_from(raw: dict[str, Any]) -> list[dict[str, Any]]:
             "depth_rate", "bench_visca", "bench_render",
         )
     }  # fmt: skip
-    return [
-        *_latency_figures(part["soak"], part["bench_publish"]),
-        *_core_figures(part["bench_core"]),
-        *_service_figures(part["soak"], part["soak_fresh"]),
-        *_replay_figures(part["replay"]),
-        *_help_figures(part["bench_cli"]),
-        *_depth_figures(part["depth_rate"]),
-        *_other_figures(part["bench_visca"], part["bench_render"]),
+    # Built only for the parts run (a part not run holds {"skipped": …}, not its results).
+    groups: list[tuple[set[str], Callable[[], list[dict[str, Any]]]]] = [
+        ({"soak", "publish"}, lambda: _latency_figures(part["soak"], part["bench_publish"])),
+        ({"core"}, lambda: _core_figures(part["bench_core"])),
+        ({"soak"}, lambda: _service_figures(part["soak"], part["soak_fresh"])),
+        ({"replay"}, lambda: _replay_figures(part["replay"])),
+        ({"cli"}, lambda: _help_figures(part["bench_cli"])),
+        ({"depth"}, lambda: _depth_figures(part["depth_rate"])),
+        ({"visca", "render"}, lambda: _other_figures(part["bench_visca"], part["bench_render"])),
     ]
+    return [f for owners, build in groups if owners & set(parts) for f in build()]
 
 
 # -- components (subprocesses) ---------------------------------------------------------------
@@ -402,6 +428,9 @@ def _latency_figures(soak: dict[str, Any], publish: dict[str, Any]) -> list[dict
 def _core_figures(core: dict[str, Any]) -> list[dict[str, Any]]:
     by_role = core.get("core_by_role", {})
     tuned = core.get("baseline_tuned_full_frame", {}).get("mean_ms")
+    # The core users run: the pipeline and the service's 3D trackers (bench_core times exactly
+    # that; results written before it named them timed the same core).
+    what = "+".join(core.get("trackers") or ("mmae",))
     out = []
     for role in ROLES:
         s = by_role.get(role, {})
@@ -410,7 +439,8 @@ def _core_figures(core: dict[str, Any]) -> list[dict[str, Any]]:
             out.append(
                 figure(
                     f"core_{role}_{stat}",
-                    f"core CPU per {role} frame, {stat} (n {s.get('n', 0)})",
+                    f"service core CPU (pipeline + {what} 3D tracker) per {role} frame, {stat} "
+                    f"(n {s.get('n', 0)})",
                     value,
                     "ms",
                     f"≤ {goal:g} ms",
@@ -425,7 +455,8 @@ def _core_figures(core: dict[str, Any]) -> list[dict[str, Any]]:
     out.append(
         figure(
             "core_vs_tuned",
-            "tuned OpenCV full-frame time / core time per tracking frame",
+            f"tuned OpenCV full-frame time / service core time (pipeline + {what} 3D tracker) "
+            "per tracking frame",
             ratio,
             "×",
             f"≥ {CORE_RATIO_GOAL:g}×",

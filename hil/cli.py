@@ -23,6 +23,7 @@ logger = logging.getLogger(__name__)
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``python -m hil``."""
+    from hil.benchmarks import PARTS as BENCH_PARTS
     from hil.scenario import OPTICS_MODELS, SCENARIO_NAMES
 
     parser = argparse.ArgumentParser(
@@ -101,6 +102,15 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output directory")
     bench.add_argument("--quick", action="store_true", help="shorter runs (smoke test)")
     bench.add_argument(
+        "--only",
+        action="append",
+        choices=BENCH_PARTS,
+        default=None,
+        metavar="PART",
+        help=f"run only this part (repeatable): {', '.join(BENCH_PARTS)}; e.g. --only core "
+        "for the core CPU figures (~1 min instead of the whole bench)",
+    )
+    bench.add_argument(
         "--readme",
         type=Path,
         nargs="?",
@@ -154,7 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             if args.readme is not None:
                 return write_readme(args.out / "bench.json", args.readme)
-            return run_bench(args.out, quick=args.quick)
+            return run_bench(args.out, quick=args.quick, only=args.only)
         if args.command == "soak":
             from hil.soak import run_soak
 

@@ -135,3 +135,21 @@ async def test_publish_path_bench_measures_both_modes() -> None:
     for mode in ("floor", "path"):
         assert result[mode]["n"] == 20
         assert 0 < result[mode]["p50_ms"] <= result[mode]["p99_ms"]
+
+
+def test_only_core_keeps_the_core_figures_named_for_the_service_trackers() -> None:
+    from hil.benchmarks import run_bench
+
+    raw = _raw()
+    raw["bench_core"]["trackers"] = ["mmae"]
+    for name in ("soak", "soak_fresh", "bench_publish", "replay", "bench_cli", "depth_rate"):
+        raw[name] = {"skipped": "not in --only"}  # as run_bench records a part not run
+    figures = figures_from(raw, {"core"})
+    keys = {f["key"] for f in figures}
+    roles = ("track", "burst", "transit", "acquire")
+    per_role = {f"core_{r}_{s}" for r in roles for s in ("mean", "p99")}
+    assert keys == {*per_role, "core_vs_tuned", "core_vs_naive"}
+    # The figure certifies what users run: the pipeline and the service's tracker, by name.
+    assert all("mmae" in f["name"] for f in figures if f["key"] != "core_vs_naive")
+    with pytest.raises(ValueError, match="unknown bench part"):
+        run_bench(Path("unused"), only=["cores"])
