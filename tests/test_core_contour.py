@@ -372,3 +372,26 @@ def _ref_irls(
             break
         w = w_new
     return params, w, res
+
+
+def test_polarity_samples_read_only_the_points_box_with_identical_values() -> None:
+    # _sample converts only the points' bounding box to float32; remap must then read the same
+    # pixels with the same weights as on the whole frame: equal to the bit, also off the image.
+    from dffd.core.contour import _sample
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (120, 160), dtype=np.uint8)
+    for trial in range(400):
+        centre, r = rng.uniform(-30, 190, 2), rng.uniform(1, 80)
+        a = np.linspace(0, 2 * np.pi, 64, endpoint=False) + rng.uniform()
+        pts = np.column_stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)])
+        pts += rng.normal(0, 0.3, pts.shape)
+        if trial % 100 == 0:
+            pts[5] = [np.nan, 3.0]
+        mx = pts[:, 0].astype(np.float32).reshape(1, -1)
+        my = pts[:, 1].astype(np.float32).reshape(1, -1)
+        whole = cv2.remap(
+            img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+        expected = np.asarray(whole, dtype=np.float64).ravel()
+        assert np.array_equal(_sample(img, pts), expected, equal_nan=True), trial

@@ -221,7 +221,7 @@ class ContourTracker:
                 obs = still
         if obs.ok:
             if dt > 0:
-                old = self._points.mean(axis=0)
+                old = _centroid(self._points)
                 new = np.asarray(obs.centroid)
                 # alpha-filtered velocity: a single noisy frame must not throw the prediction
                 self._velocity = 0.6 * self._velocity + 0.4 * (new - old) / dt
@@ -242,7 +242,7 @@ class ContourTracker:
         """A fit worth checking against the other prediction (see :meth:`update`)."""
         if not obs.ok or obs.inlier_fraction < HYPOTHESIS_INLIERS:
             return True
-        c = predicted.mean(axis=0)
+        c = _centroid(predicted)
         miss = math.hypot(obs.centroid[0] - float(c[0]), obs.centroid[1] - float(c[1]))
         return miss > HYPOTHESIS_MISS * self.config.search_px
 
@@ -301,12 +301,13 @@ class ContourTracker:
             relax, self._cfg_vec, grad.shape[1], grad.shape[0], new_pts, peaks, ws.mag,
             ws.scratch, ws.design, out,
         )  # fmt: skip
-        centroid_in = (float(out[layout.OUT_CX_IN]), float(out[layout.OUT_CY_IN]))
-        r_in = float(out[layout.OUT_R_IN])
-        inlier_fraction = float(out[layout.OUT_INLIER_FRACTION])
-        if out[layout.OUT_STATUS] != 0:
+        res = out.tolist()  # the kernel's scalars as floats at once (not one index each)
+        centroid_in = (res[layout.OUT_CX_IN], res[layout.OUT_CY_IN])
+        r_in = res[layout.OUT_R_IN]
+        inlier_fraction = res[layout.OUT_INLIER_FRACTION]
+        if res[layout.OUT_STATUS] != 0:
             return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in, None
-        edge_sigma2 = float(out[layout.OUT_EDGE_SIGMA2])
+        edge_sigma2 = res[layout.OUT_EDGE_SIGMA2]
         samples = (
             EdgeSamples(
                 bx, by, ws.normals.copy(), ws.scratch[layout.SCRATCH_OFFSET].copy(),
@@ -318,12 +319,12 @@ class ContourTracker:
         )  # fmt: skip
         obs = BoundaryObservation(
             points=new_pts,
-            centroid=(float(out[layout.OUT_CX]), float(out[layout.OUT_CY])),
-            r_px=float(out[layout.OUT_R]),
+            centroid=(res[layout.OUT_CX], res[layout.OUT_CY]),
+            r_px=res[layout.OUT_R],
             peak_sq=peaks,
             inlier_fraction=inlier_fraction,
-            residual_px=float(out[layout.OUT_RMS]),
-            ok=bool(out[layout.OUT_OK] != 0),
+            residual_px=res[layout.OUT_RMS],
+            ok=res[layout.OUT_OK] != 0,
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
         )
         return obs, centroid_in, r_in, samples
@@ -464,12 +465,30 @@ def _bad(
 
 
 def _sample(gray: npt.NDArray[np.uint8], pts: FloatArray) -> FloatArray:
+    """Bilinear samples of ``gray`` at ``pts`` (border replicated), in float32 as remap gives.
+
+    Only the points' bounding box (± 2 px, clipped to the image) is converted to float32, not
+    the frame: shifting float32 coordinates by the box's integer corner is exact, so remap
+    reads the same pixels with the same weights, and where the box meets the image border it
+    replicates the same pixels.
+    """
     img = gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
     mx = pts[:, 0].astype(np.float32).reshape(1, -1)
     my = pts[:, 1].astype(np.float32).reshape(1, -1)
+    h, w = img.shape[:2]
+    lo_x, hi_x, lo_y, hi_y = float(mx.min()), float(mx.max()), float(my.min()), float(my.max())
+    if math.isfinite(lo_x + hi_x + lo_y + hi_y):
+        x0 = min(max(math.floor(lo_x) - 2, 0), w - 1)
+        y0 = min(max(math.floor(lo_y) - 2, 0), h - 1)
+        x1 = max(min(math.ceil(hi_x) + 3, w), x0 + 1)
+        y1 = max(min(math.ceil(hi_y) + 3, h), y0 + 1)
+    else:
+        x0, y0, x1, y1 = 0, 0, w, h  # NaN or infinite coordinates: the whole frame
+    crop = img[y0:y1, x0:x1].astype(np.float32)
     out = cv2.remap(
-        img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )
+        crop, mx - np.float32(x0), my - np.float32(y0), cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )  # fmt: skip
     return np.asarray(out, dtype=np.float64).ravel()
 
 
@@ -511,6 +530,11 @@ class _GradientCache:
         assert self._gx is not None
         assert self._gy is not None
         return self._gx, self._gy, box[0], box[1]
+
+
+def _centroid(points: FloatArray) -> FloatArray:
+    """``points.mean(axis=0)`` with the same sum and division, without ``mean``'s overhead."""
+    return np.asarray(np.add.reduce(points, axis=0) / len(points), dtype=np.float64)
 
 
 @functools.cache
