@@ -643,16 +643,15 @@ def _unit_update_all(
     pht = ps[:, :, POS] - ps[:, :, SIZE, None] * m  # (n, d, 3) = P Hᵀ
     rn = (size * size)[:, None, None] * sigma_m  # (n, 3, 3)
     s = pht[:, POS, :] - m[:, None] * pht[:, SIZE, None, :] + rn
-    s_inv, logdet = _inv3_logdet_stack(s)
-    maha = np.einsum("ni,nij,nj->n", nu, s_inv, nu)
-    loglik = -0.5 * (maha + logdet + 3.0 * _LOG_2PI)
+    s_inv, loglik = _inv3_loglik_stack(s, nu)
     gain = pht @ s_inv  # (n, d, 3)
-    xs_new = xs + np.einsum("nij,nj->ni", gain, nu)
+    xs_new = xs + (gain @ nu[:, :, None])[:, :, 0]
     gt = gain.transpose(0, 2, 1)
     a = ps - gain @ pht.transpose(0, 2, 1)  # (I − KH) P
     aht = a[:, :, POS] - a[:, :, SIZE, None] * m  # A Hᵀ
-    ps_new = a - aht @ gt + gain @ rn @ gt
-    return xs_new, 0.5 * (ps_new + ps_new.transpose(0, 2, 1)), np.asarray(loglik)
+    # A − A Hᵀ Kᵀ + K Rn Kᵀ, with the two products sharing Kᵀ.
+    ps_new = a - (aht - gain @ rn) @ gt
+    return xs_new, _sym_stack(ps_new), loglik
 
 
 def _size_update(
@@ -679,12 +678,15 @@ def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
     return inv, math.log(det)
 
 
-def _inv3_logdet_stack(s: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Inverses and log-determinants of a (n, 3, 3) stack, symmetrised first, by cofactors
-    (:func:`_inv3_logdet` per matrix: a few models, where ``np.linalg`` costs more per call)."""
+def _inv3_loglik_stack(s: FloatArray, nu: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Inverses of a (n, 3, 3) stack of innovation covariances (symmetrised first, by cofactors
+    as :func:`_inv3_logdet`) and the Gaussian log-likelihoods of the (n, 3) innovations: a few
+    models, in floats, where ``np.linalg`` and ``einsum`` cost more per call than the work."""
     invs: list[list[list[float]]] = []
-    logdets: list[float] = []
-    for (a, b0, c0), (b1, d, e0), (c1, e1, f) in s.tolist():
+    logliks: list[float] = []
+    for ((a, b0, c0), (b1, d, e0), (c1, e1, f)), (u, v, w) in zip(
+        s.tolist(), nu.tolist(), strict=True
+    ):
         # 0.5 (S + Sᵀ) element by element, as the per-model update symmetrises.
         b, c, e = 0.5 * (b0 + b1), 0.5 * (c0 + c1), 0.5 * (e0 + e1)
         c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
@@ -692,10 +694,16 @@ def _inv3_logdet_stack(s: FloatArray) -> tuple[FloatArray, FloatArray]:
         if not det > 0.0:
             raise np.linalg.LinAlgError(f"innovation covariance is not positive definite: {s!r}")
         c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-        invs.append([[c00 / det, c01 / det, c02 / det], [c01 / det, c11 / det, c12 / det],
-                     [c02 / det, c12 / det, c22 / det]])  # fmt: skip
-        logdets.append(math.log(det))
-    return np.array(invs), np.array(logdets)
+        i00, i01, i02 = c00 / det, c01 / det, c02 / det
+        i11, i12, i22 = c11 / det, c12 / det, c22 / det
+        invs.append([[i00, i01, i02], [i01, i11, i12], [i02, i12, i22]])
+        maha = (
+            u * (i00 * u + i01 * v + i02 * w)
+            + v * (i01 * u + i11 * v + i12 * w)
+            + w * (i02 * u + i12 * v + i22 * w)
+        )
+        logliks.append(-0.5 * (maha + math.log(det) + 3.0 * _LOG_2PI))
+    return np.array(invs), np.array(logliks)
 
 
 def _sym(m: FloatArray) -> FloatArray:
