@@ -11,7 +11,6 @@ resampled. The same per-normal maxima feed the focus cost (2).
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -210,21 +209,24 @@ class ContourTracker:
         if self._points is None or self._t is None:
             raise RuntimeError("ContourTracker.update called without an active contour")
         dt = max(t - self._t, 0.0)
-        step = self._velocity * dt
-        predicted = self._points + step
+        vx, vy = self._velocity.tolist()
+        sx, sy = vx * dt, vy * dt  # the constant-velocity step (floats: NumPy's arithmetic)
+        predicted = self._points + np.array([sx, sy])
         relax = self.config.relax if motion != "translation" else 0.0
         grad = _GradientCache(gray, self.config.presmooth_sigma_px)
         obs = self._fit(grad, predicted, motion, relax)
-        if math.hypot(step[0], step[1]) > self.config.refine_px and self._in_doubt(obs, predicted):
+        if math.hypot(sx, sy) > self.config.refine_px and self._in_doubt(obs, predicted):
             still = self._fit(grad, self._points, motion, relax)
             if better_fit(still, obs):
                 obs = still
         if obs.ok:
             if dt > 0:
-                old = _centroid(self._points)
-                new = np.asarray(obs.centroid)
+                ox, oy = _centroid(self._points).tolist()
+                nx, ny = obs.centroid
                 # alpha-filtered velocity: a single noisy frame must not throw the prediction
-                self._velocity = 0.6 * self._velocity + 0.4 * (new - old) / dt
+                self._velocity = np.array(
+                    [0.6 * vx + 0.4 * (nx - ox) / dt, 0.6 * vy + 0.4 * (ny - oy) / dt]
+                )
             self._points = obs.points
             self._bad_frames = 0
         else:
@@ -251,20 +253,18 @@ class ContourTracker:
     ) -> BoundaryObservation:
         """Fit the contour from ``predicted``: search again along the updated contour while a
         pass moves it by more than ``refine_px`` (at most ``max_passes`` passes)."""
-        obs, c_in, r_in, samples = self._step(grad, predicted, motion, relax)
+        obs, c_in, r_in, _ = self._step(grad, predicted, motion, relax)
         for _ in range(self.config.max_passes - 1):
             if not obs.ok:
                 break
             moved = math.hypot(obs.centroid[0] - c_in[0], obs.centroid[1] - c_in[1])
             if moved + abs(obs.r_px - r_in) <= self.config.refine_px:
                 break
-            again, c_in, r_in, again_samples = self._step(grad, obs.points, motion, relax)
+            again, c_in, r_in, _ = self._step(grad, obs.points, motion, relax)
             if not again.ok:
                 break
-            obs, samples = again, again_samples
-        if obs.ok and samples is not None:
-            obs = dataclasses.replace(obs, edge_samples=samples)
-        return obs
+            obs = again
+        return obs  # carries its own pass's edge samples (_step), those of the pass kept
 
     # -- one measurement + fit on one image -------------------------------------------------
     def _step(
@@ -308,6 +308,7 @@ class ContourTracker:
         if res[layout.OUT_STATUS] != 0:
             return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in, None
         edge_sigma2 = res[layout.OUT_EDGE_SIGMA2]
+        ok = res[layout.OUT_OK] != 0
         samples = (
             EdgeSamples(
                 bx, by, ws.normals.copy(), ws.scratch[layout.SCRATCH_OFFSET].copy(),
@@ -324,8 +325,10 @@ class ContourTracker:
             peak_sq=peaks,
             inlier_fraction=inlier_fraction,
             residual_px=res[layout.OUT_RMS],
-            ok=res[layout.OUT_OK] != 0,
+            ok=ok,
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
+            # a found contour carries the samples of its pass (the focus measure's input)
+            edge_samples=samples if ok else None,
         )
         return obs, centroid_in, r_in, samples
 
