@@ -4,8 +4,9 @@
 lock-step runs of the reference simulator (``paper-circle`` and ``figure-eight``, 700 timed
 frames each, the bench's core: ``hil.bench_core``): ``step_size`` with the unit-size point, its
 covariance and the burst size, ``extrapolate`` and ``reset``. The expected outputs of every
-tracker kind were computed from those inputs by the tracker before its speed-up (commit d43666c)
-with the configuration spelled out below, so a change of the defaults does not touch this test.
+tracker kind were computed from those inputs by the tracker before its speed-up (commit d43666c;
+main's tracker at 7fd3d2b, with its start rule, gives the same outputs) with the configuration
+spelled out below, so a change of the defaults does not touch this test.
 
 A change of the trackers' *semantics* (models, updates, combination) changes the outputs on
 purpose: regenerate them from the stored inputs with
@@ -35,7 +36,7 @@ TRACE = Path(__file__).parent / "data" / "track3d_trace.npz"
 # speed, position σ (3), probabilities of cv, ca, ct; NaN where no track.
 OUT_WIDTH = 16
 MODEL_NAMES = ("cv", "ca", "ct")
-# The configuration the outputs were computed with (the defaults at commit d43666c).
+# The configuration the outputs were computed with (the defaults at commit 7fd3d2b).
 CONFIG = Tracker3DConfig(
     q_cv_m2_s3=1e-4,
     q_cv_single_m2_s3=1e-2,
@@ -49,6 +50,7 @@ CONFIG = Tracker3DConfig(
     init_sigma_omega_rad_s=0.3,
     max_gap_s=1.0,
     q_size_m2_s=1e-12,
+    start_size_sigma_rel=0.01,
     sigma_size_rel=3e-4,
     sigma_px=0.3,
     sigma_angle_deg=0.03,
