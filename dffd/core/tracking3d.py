@@ -189,26 +189,38 @@ def cartesian_measurement(
     du = meas.centroid_px[0] - camera.principal_point_px[0]
     dv = meas.centroid_px[1] - camera.principal_point_px[1]
     z = meas.z_m
-    cam = np.array([k * du * z, k * dv * z, z])
+    cam = (k * du * z, k * dv * z, z)
     p, t = math.radians(meas.pan_deg), math.radians(meas.tilt_deg)
     cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
-    r_pan = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    r_tilt = np.array([[1.0, 0.0, 0.0], [0.0, ct, -st], [0.0, st, ct]])
-    d_pan = np.array([[-sp, 0.0, cp], [0.0, 0.0, 0.0], [-cp, 0.0, -sp]])
-    d_tilt = np.array([[0.0, 0.0, 0.0], [0.0, -st, -ct], [0.0, ct, -st]])
-    rot = r_pan @ r_tilt
-    world = rot @ cam
-    # Jacobian with respect to (u, v, z, pan, tilt).
-    jac = np.empty((3, 5))
-    jac[:, 0] = rot[:, 0] * (k * z)
-    jac[:, 1] = rot[:, 1] * (k * z)
-    jac[:, 2] = rot @ np.array([k * du, k * dv, 1.0])
-    jac[:, 3] = d_pan @ r_tilt @ cam
-    jac[:, 4] = r_pan @ d_tilt @ cam
+    # Written out on floats (once per tracking frame; NumPy's per-call cost on 3×3 products is
+    # most of the work): rot = R_pan R_tilt, and the products of the derivative matrices
+    # d(R_pan)/dp R_tilt and R_pan d(R_tilt)/dt, rows.
+    rot = ((cp, sp * st, sp * ct), (0.0, ct, -st), (-sp, cp * st, cp * ct))
+    d_rot_pan = ((-sp, cp * st, cp * ct), (0.0, 0.0, 0.0), (-cp, -sp * st, -sp * ct))
+    d_rot_tilt = ((0.0, sp * ct, -sp * st), (0.0, -st, -ct), (0.0, cp * ct, -cp * st))
+    world = [_dot3(row, cam) for row in rot]
+    # Jacobian with respect to (u, v, z, pan, tilt), rows of 5.
+    kz = k * z
+    unit_z = (k * du, k * dv, 1.0)
+    jac = [
+        (rot[i][0] * kz, rot[i][1] * kz, _dot3(rot[i], unit_z), _dot3(d_rot_pan[i], cam),
+         _dot3(d_rot_tilt[i], cam))
+        for i in range(3)
+    ]  # fmt: skip
     sa = math.radians(meas.sigma_angle_deg)
-    var = np.array([meas.sigma_px**2, meas.sigma_px**2, meas.sigma_z_m**2, sa * sa, sa * sa])
-    cov = (jac * var) @ jac.T
-    return world, _sym(cov)
+    var = (meas.sigma_px**2, meas.sigma_px**2, meas.sigma_z_m**2, sa * sa, sa * sa)
+    (a0, a1, a2, a3, a4), (b0, b1, b2, b3, b4), (c0, c1, c2, c3, c4) = jac
+    v0, v1, v2, v3, v4 = var
+    # J diag(var) Jᵀ: symmetric as computed (each entry one sum of the five terms).
+    wa = (a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4)
+    wb = (b0 * v0, b1 * v1, b2 * v2, b3 * v3, b4 * v4)
+    aa = wa[0] * a0 + wa[1] * a1 + wa[2] * a2 + wa[3] * a3 + wa[4] * a4
+    ab = wa[0] * b0 + wa[1] * b1 + wa[2] * b2 + wa[3] * b3 + wa[4] * b4
+    ac = wa[0] * c0 + wa[1] * c1 + wa[2] * c2 + wa[3] * c3 + wa[4] * c4
+    bb = wb[0] * b0 + wb[1] * b1 + wb[2] * b2 + wb[3] * b3 + wb[4] * b4
+    bc = wb[0] * c0 + wb[1] * c1 + wb[2] * c2 + wb[3] * c3 + wb[4] * c4
+    cc = c0 * v0 * c0 + c1 * v1 * c1 + c2 * v2 * c2 + c3 * v3 * c3 + c4 * v4 * c4
+    return np.array(world), np.array([[aa, ab, ac], [ab, bb, bc], [ac, bc, cc]])
 
 
 def unit_size_point(meas: DirectionSize, camera: CameraModel) -> tuple[FloatArray, FloatArray]:
@@ -704,6 +716,10 @@ def _inv3_loglik_stack(s: FloatArray, nu: FloatArray) -> tuple[FloatArray, Float
         )
         logliks.append(-0.5 * (maha + math.log(det) + 3.0 * _LOG_2PI))
     return np.array(invs), np.array(logliks)
+
+
+def _dot3(a: Sequence[float], b: Sequence[float]) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def _sym(m: FloatArray) -> FloatArray:
