@@ -9,8 +9,9 @@ main's tracker at 7fd3d2b, with its start rule, gives the same outputs) with the
 spelled out below, so a change of the defaults does not touch this test.
 
 A change of the trackers' *semantics* (models, updates, combination) changes the outputs on
-purpose: regenerate them from the stored inputs with
-``python tests/test_core_tracking3d_trace.py --regenerate`` and say so in the commit.
+purpose: regenerate them from the stored inputs with the tracker of the tree you are in,
+``PYTHONPATH=. python tests/test_core_tracking3d_trace.py --regenerate`` (from the repository
+root; without it an installed ``dffd`` may be imported instead), and say so in the commit.
 """
 
 from __future__ import annotations
