@@ -154,3 +154,33 @@ def test_slow_errors_factor_sees_errors_that_do_not_average_out() -> None:
     assert white.factor == pytest.approx(1.0, abs=0.3)
     # Bartlett-weighted long-run variance over 10 lags of an AR(1) with φ = 0.9: ~6-7x γ₀
     assert 4.0 < slow.factor < 12.0
+
+
+@pytest.mark.parametrize("ratio", [1.0, 4.0])
+def test_consistency_ratio_converges_to_the_innovations_excess(ratio: float) -> None:
+    """Innovations ``ratio`` times as variable as predicted: κ² settles near ``ratio`` (it used
+    to be updated against S without κ², a random walk with no fixed point: it climbed to 4–6 on
+    innovations whose ν²/S averaged 1.1)."""
+    rng = np.random.default_rng(11)
+    noise = KFNoise()
+    adapt = NoiseAdaptConfig()
+    k1, k2 = cf2_gains(0.04, 0.015, 0.05)
+    unc = Uncertainty(
+        noise, adapt, cf1_k=1.0, cf2_gains=(k1, k2), lpv=LPVGains.from_poles(0.15, 0.8, -2.0, 2.0)
+    )
+    kf = DepthKF(noise)
+    sigma, z = 0.02, 5.0
+    kf.reset(z, sigma)
+    unc.start(sigma, (0, 1, 2))
+    history = []
+    for n in range(1, 400):
+        for _ in range(14):
+            kf.predict(1.0, 1 / 30)
+            unc.predict(1 / 30, 1.0, 0.0, z)
+        frames = (2 * n, 2 * n + 1, 2 * n + 2)
+        s = unc.innovation_variance(sigma, frames)
+        innov = rng.normal(0.0, math.sqrt(ratio * s))
+        kf.update(z + innov, unc.measurement(innov, sigma, kf.p, frames))
+        history.append(unc.consistency.scale)
+    late = float(np.mean(history[200:]))
+    assert late == pytest.approx(max(ratio, 1.0), rel=0.3)

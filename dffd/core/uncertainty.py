@@ -269,15 +269,14 @@ class Uncertainty:
         variance (κ²), replace the held measurement everywhere, apply the KF's update; returns
         the σ the KF is told (the fit's, scaled by λ)."""
         corr = shared_frame_correlation(self._frames, frames)
+        # Sage–Husa: κ² is updated by ν²/S with S as the published σ states it (κ² included).
+        # With S alone the fixed point is E[ν²/S] = 1 whatever κ² is: κ² was a multiplicative
+        # random walk held above its floor of 1, and climbed to 4–6 on paper-circle while
+        # E[ν²/S] was 1.1 (docs/estimation.md §9)
+        s = self.innovation_variance(sigma_fit, frames) * self.consistency.scale
+        self.consistency.update(innovation, s)
         self._frames = frames
         kf = self.errors["kf"]
-        # innovation variance of the KF with the current λ (its error and the new measurement's)
-        var_now = self.measurement_sigma(sigma_fit) ** 2
-        probe = ErrorCovariance(2)
-        probe.p = kf.p.copy()
-        probe.replace_measurement(var_now, corr)
-        s = probe.innovation_variance()
-        self.consistency.update(innovation, s)
         sigma = self.measurement_sigma(sigma_fit)
         var = sigma * sigma
         for err in self.errors.values():
@@ -287,6 +286,16 @@ class Uncertainty:
         kf.kalman_update(gain)
         self.measured_sigma = sigma
         return sigma
+
+    def innovation_variance(self, sigma_fit: float, frames: tuple[int, ...]) -> float:
+        """Predicted variance of the KF's innovation for a burst of fit σ ``sigma_fit`` on
+        ``frames`` (its error and the new measurement's, with the current λ; κ² not included)."""
+        probe = ErrorCovariance(2)
+        probe.p = self.errors["kf"].p.copy()
+        probe.replace_measurement(
+            self.measurement_sigma(sigma_fit) ** 2, shared_frame_correlation(self._frames, frames)
+        )
+        return probe.innovation_variance()
 
     def hand_over(self) -> None:
         """The fixed-gain filters were seeded from the KF: they inherit its error covariance."""
