@@ -20,5 +20,6 @@ BurstMode = Literal["rolling", "classic"]
 PanTiltMode = Literal["drive", "absolute", "off"]
 # The focus measure of a frame: "edge_variance", the second moment of the edge-derivative profile
 # (any PSF: blur variances add); "peak_gradient", the paper's 1/mean(max ||∇I||²), a parabola in
-# the focus setting only for a Gaussian PSF (docs/estimation.md §8).
-FocusMeasure = Literal["edge_variance", "peak_gradient"]
+# the focus setting only for a Gaussian PSF (docs/estimation.md §8); "debiased_peak", the peak
+# gradient's vertex less its bias fitted online against the edge moment's (dffd.core.combine, §12).
+FocusMeasure = Literal["edge_variance", "peak_gradient", "debiased_peak"]

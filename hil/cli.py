@@ -136,6 +136,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     table = sub.add_parser("table", help="print reports as the README's markdown results table")
     table.add_argument("reports", type=Path, nargs="+", help="report.json files or directories")
+    table.add_argument(
+        "--accuracy",
+        action="store_true",
+        help="issue 11's accuracy table: best ss RMS, raw z_m, ratio, coverage, estimate rate, "
+        "focus slope",
+    )
 
     compare = sub.add_parser("compare", help="compare two reports; exit 1 on a regression")
     compare.add_argument("a", type=Path, help="reference report.json (or its directory)")
@@ -155,9 +161,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return compare_main(args.a, args.b)
         if args.command == "table":
-            from hil.report import load_report, markdown_table
+            from hil.report import accuracy_table, load_report, markdown_table
 
-            print(markdown_table([load_report(p) for p in args.reports]))
+            loaded = [load_report(p) for p in args.reports]
+            print(accuracy_table(loaded) if args.accuracy else markdown_table(loaded))
             return EXIT_OK
         if args.command == "bench":
             from hil.benchmarks import run_bench, write_readme

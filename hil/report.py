@@ -154,6 +154,7 @@ def build_report(
         "estimators": estimators,
         "baselines": baselines,
         "bursts": burst_counts(results),
+        "focus_slope": focus_slope(results),
         "seeds": seed_spread(results),
         "rates": rates,
         "latency": latency,
@@ -188,6 +189,43 @@ def burst_counts(results: Sequence[RunResult]) -> dict[str, Any]:
         "dropped": sum(drops.values()),
         "reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         "measure_fallbacks": sum(r.extra.get("measure_fallbacks", 0) for r in results),
+    }
+
+
+def focus_slope(results: Sequence[RunResult]) -> dict[str, Any] | None:
+    """The focus measure's slope in closed loop: least squares of the fitted vertex's offset from
+    its bracket centre on the true sharp setting's (both in half-brackets), over the accepted
+    steady-state bursts; its standard error, the intercept and the spread of the true offsets
+    (the slope is only as well determined as that spread allows). None without bursts."""
+    x_true: list[float] = []
+    x_hat: list[float] = []
+    for r in results:
+        t_settle = r.t_start + r.settle_s
+        for b in r.bursts:
+            if not b.accepted or b.v_hat_mm is None or b.truth_v_mm is None or b.t < t_settle:
+                continue
+            lo, hi = min(b.v0_mm), max(b.v0_mm)
+            h = 0.5 * (hi - lo)
+            if not h > 0:
+                continue
+            mid = 0.5 * (lo + hi)
+            x_true.append((b.truth_v_mm - mid) / h)
+            x_hat.append((b.v_hat_mm - mid) / h)
+    if len(x_true) < 3:
+        return None
+    xt, xh = np.asarray(x_true), np.asarray(x_hat)
+    spread = float(np.std(xt))
+    if not spread > 0:
+        return None
+    slope, icpt = np.polyfit(xt, xh, 1)
+    resid = xh - (slope * xt + icpt)
+    se = float(np.sqrt(np.sum(resid**2) / (len(xt) - 2) / np.sum((xt - xt.mean()) ** 2)))
+    return {
+        "n": len(xt),
+        "slope": _f(slope),
+        "slope_se": se,
+        "intercept_h": _f(icpt),
+        "true_offset_sd_h": spread,
     }
 
 
@@ -566,6 +604,40 @@ def markdown_table(reports: Sequence[dict[str, Any]]) -> str:
             f"{ss(base.get('aruco'))} | {ss(base.get('full_sweep'))} | {spread(r.get('seeds'))} | "
             f"{rates['depth_hz']:.2f} ({_num(limit, '{:.2f}')}) | {_num(sweep, '{:.2f}')} | "
             f"{passed}/{len(goals)} |"
+        )
+    return "\n".join(rows)
+
+
+def accuracy_table(reports: Sequence[dict[str, Any]]) -> str:
+    """One row per report: the best estimator's steady-state RMS and raw z_m's steady-state std
+    (mean ± sd over the seeds, mm), their ratio, the best estimator's 2σ coverage and NEES (all
+    seeds pooled), the estimate rate over the frame rate and the focus measure's closed-loop
+    slope — issue 11's table (``python -m hil table --accuracy``)."""
+    head = (
+        "| scenario | optics | seeds | best ss RMS (mm) | raw z_m ss std (mm) | ratio | "
+        "2σ coverage | NEES | estimate rate | focus slope |"
+    )
+    rows = [head, "|" + "---|" * 10]
+    for r in reports:
+        seeds = r.get("seeds") or {}
+        mean, sd = seeds.get("mean") or {}, seeds.get("sd") or {}
+        best_m, raw_m = mean.get("best_ss_rms_m"), mean.get("measured_ss_std_m")
+
+        def pm(key: str, mean: dict[str, Any] = mean, sd: dict[str, Any] = sd) -> str:
+            value, spread = mean.get(key), sd.get(key)
+            if value is None:
+                return "–"
+            return _mm(value) + (f" ± {_mm(spread)}" if spread is not None else "")
+
+        ratio = best_m / raw_m if best_m is not None and raw_m else None
+        best = r["estimators"].get(r["best"]) or {}
+        slope = r.get("focus_slope")
+        slope_s = "–" if not slope else f"{slope['slope']:.2f} ± {slope['slope_se']:.2f}"
+        rows.append(
+            f"| {r['scenario']} | {r.get('optics', '–')} | {seeds.get('n', 1)} | "
+            f"{pm('best_ss_rms_m')} | {pm('measured_ss_std_m')} | {_num(ratio, '{:.2f}')} | "
+            f"{_num(best.get('coverage_2sigma'), '{:.3f}')} | {_num(best.get('nees'), '{:.2f}')} | "
+            f"{_num(r['rates'].get('estimate_rate_ratio'), '{:.2f}')} | {slope_s} |"
         )
     return "\n".join(rows)
 

@@ -253,7 +253,7 @@ def test_soak_writes_its_figures_and_plot(tmp_path: Path) -> None:
 def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> None:
     """--optics aberrated renders with the second optics model and tells the estimator that
     model's own lens table; --seeds runs each seed and the report gives mean and spread."""
-    from hil.report import load_report, markdown_table
+    from hil.report import accuracy_table, load_report, markdown_table
     from hil.simbuild import build_session
 
     scenario = tmp_path / "short-static.toml"
@@ -276,6 +276,14 @@ def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> N
     assert all(r < 0.1 for r in rms)  # a static disc at 2 m, on a lens it was not tuned on
     row = markdown_table([report]).splitlines()[-1]
     assert "| aberrated | 2 |" in row
+    # issue 11's table: ratio, coverage, estimate rate and the closed-loop focus slope
+    slope = report["focus_slope"]
+    assert slope["n"] > 10
+    assert slope["slope"] == pytest.approx(1.0, abs=0.3)  # little spread of offsets at rest
+    cells = accuracy_table([report]).splitlines()[-1].split(" | ")
+    assert cells[1:3] == ["aberrated", "2"]
+    ratio = spread["mean"]["best_ss_rms_m"] / spread["mean"]["measured_ss_std_m"]
+    assert cells[5] == f"{ratio:.2f}"
     assert hil_main(["run", str(scenario), "--fast", "--seeds", "1,x"]) == 2
 
 

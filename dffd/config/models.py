@@ -267,8 +267,9 @@ class EstimatorsSection(_Section):
     lpv_rho_max_per_s: Annotated[float, Field(ge=-100, le=100)] = 2.0
     focus_measure: FocusMeasure = Field(
         default="peak_gradient",
-        description="focus cost of a burst frame: peak_gradient (the paper's) or edge_variance "
-        "(any PSF, noisier; docs/estimation.md §8)",
+        description="focus cost of a burst frame: peak_gradient (the paper's), edge_variance "
+        "(any PSF, noisier; docs/estimation.md §8) or debiased_peak (the peak gradient less its "
+        "bias fitted online against the edge moment, §12)",
     )
 
     @model_validator(mode="after")

@@ -24,8 +24,9 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
+from dffd.core.combine import PeakBias, combine_vertices
 from dffd.core.contour import BoundaryObservation
-from dffd.core.focus import FitConfig, fit_burst, frame_cost
+from dffd.core.focus import BurstFit, FitConfig, fit_burst, frame_cost
 from dffd.core.lens import Lens
 from dffd.core.outputs import Measurement
 from dffd.literals import FocusMeasure
@@ -101,6 +102,9 @@ class BurstAssembler:
         self._id: int | None = None
         self._last_end: BurstSample | None = None  # the last rolling end (the next one's slot 0)
         self._last_mid: BurstSample | None = None  # the last tracking frame's cost sample
+        # the peak gradient's bias against the edge moment (measure "debiased_peak"); a property
+        # of the lens and the measures, kept across targets
+        self.peak_bias = PeakBias()
         # time of the first frame of the last burst fitted (the sizes from there on transport it)
         self.last_t_first: float | None = None
 
@@ -142,7 +146,9 @@ class BurstAssembler:
     ) -> BurstSample | None:
         """The frame's cost of the configured measure (and of (2) as its fallback), or None."""
         trim = self.trim_fraction
-        measure = self.focus_measure
+        measure: FocusMeasure = (
+            "edge_variance" if self.focus_measure == "debiased_peak" else self.focus_measure
+        )
         cost = frame_cost(obs, measure, trim)
         peak = None if measure == "peak_gradient" else frame_cost(obs, "peak_gradient", trim)
         if cost is None and peak is None:
@@ -173,6 +179,7 @@ class BurstAssembler:
         for s in samples:  # sequential sum (as np.mean of a few values), no array
             t_sum += s.t
         t_mid = t_sum / len(samples)
+        fell_back = False
         if any(math.isnan(s.g) for s in samples):
             # one frame's blur overflowed the edge-moment window: the whole burst on cost (2)
             if any(s.peak is None for s in samples):
@@ -180,24 +187,14 @@ class BurstAssembler:
                 return None
             samples = [replace(s, g=s.peak[0], sigma_g=s.peak[1]) for s in samples if s.peak]
             self.measure_fallbacks += 1
+            fell_back = True
         v = [s.v_mm for s in samples]
         g = [s.g for s in samples]
         sg = [s.sigma_g for s in samples]
-        fit = fit_burst(v, g, sg, self.lens, self.fit)
         log_ratio = log_size_ratios([s.t for s in samples], t_mid)
-        if log_ratio is not None:
-            z_ref = fit.z_m if fit.accepted else z_fallback
-            for _ in range(2):  # the shift depends (weakly) on the depth it is computed at
-                if z_ref is None or not z_ref > 0:
-                    break
-                v_ref = self.lens.v_from_depth(z_ref)
-                # z_i = z s(t_mid)/s(t_i): the sharp setting at frame i is v(z_i)
-                v_comp = [
-                    vi - (self.lens.v_from_depth(z_ref * math.exp(-lr)) - v_ref)
-                    for vi, lr in zip(v, log_ratio, strict=True)
-                ]
-                fit = fit_burst(v_comp, g, sg, self.lens, self.fit)
-                z_ref = fit.z_m if fit.accepted else None
+        fit = self._fit(v, g, sg, log_ratio, z_fallback)
+        if self.focus_measure == "debiased_peak":
+            fit = self._combine(fit, v, samples, log_ratio, z_fallback, fallback=fell_back)
         if not fit.accepted:
             logger.debug("burst %d rejected: %s", bid, fit.reason)
         return Measurement(
@@ -216,6 +213,80 @@ class BurstAssembler:
             z_m=fit.z_m,
             sigma_m=fit.sigma_m,
         )
+
+    def _fit(
+        self,
+        v: list[float],
+        g: list[float],
+        sg: list[float],
+        log_ratio: list[float] | None,
+        z_fallback: float | None,
+    ) -> BurstFit:
+        """The parabola fit, each setting shifted by the target's motion during the burst."""
+        fit = fit_burst(v, g, sg, self.lens, self.fit)
+        if log_ratio is None:
+            return fit
+        z_ref = fit.z_m if fit.accepted else z_fallback
+        for _ in range(2):  # the shift depends (weakly) on the depth it is computed at
+            if z_ref is None or not z_ref > 0:
+                break
+            v_ref = self.lens.v_from_depth(z_ref)
+            # z_i = z s(t_mid)/s(t_i): the sharp setting at frame i is v(z_i)
+            v_comp = [
+                vi - (self.lens.v_from_depth(z_ref * math.exp(-lr)) - v_ref)
+                for vi, lr in zip(v, log_ratio, strict=True)
+            ]
+            fit = fit_burst(v_comp, g, sg, self.lens, self.fit)
+            z_ref = fit.z_m if fit.accepted else None
+        return fit
+
+    def _combine(
+        self,
+        fit: BurstFit,
+        v: list[float],
+        samples: list[BurstSample],
+        log_ratio: list[float] | None,
+        z_fallback: float | None,
+        *,
+        fallback: bool,
+    ) -> BurstFit:
+        """``debiased_peak``: the peak-gradient fit of the same frames as the edge-moment fit
+        ``fit``, less its bias against it (dffd.core.combine); a burst on cost (2) alone too."""
+        mid, h = 0.5 * (min(v) + max(v)), 0.5 * (max(v) - min(v))
+        if not h > 0:
+            return fit
+        if fallback:
+            # cost (2) alone (the first, full-range brackets): as with edge_variance, unless the
+            # bias fit has seen bursts to debias it with
+            if not fit.accepted or self.peak_bias.count == 0:
+                return fit
+            b, var_b = self.peak_bias.correction(0.0)
+            x = (fit.v_hat_mm - mid) / h - b
+            return self._with_vertex(
+                fit, mid + h * x, h * math.sqrt((fit.sigma_v_mm / h) ** 2 + var_b)
+            )
+        if not fit.accepted or any(s.peak is None for s in samples):
+            return fit
+        peaks = [s.peak for s in samples if s.peak is not None]
+        pg = self._fit(v, [p[0] for p in peaks], [p[1] for p in peaks], log_ratio, z_fallback)
+        if not pg.accepted:
+            return fit
+        x, var = combine_vertices(
+            (fit.v_hat_mm - mid) / h,
+            (fit.sigma_v_mm / h) ** 2,
+            (pg.v_hat_mm - mid) / h,
+            (pg.sigma_v_mm / h) ** 2,
+            self.peak_bias,
+        )
+        return self._with_vertex(fit, mid + h * x, h * math.sqrt(var))
+
+    def _with_vertex(self, fit: BurstFit, v_hat: float, sigma_v: float) -> BurstFit:
+        """``fit`` with another vertex and its σ (depth and σ_z from the lens table)."""
+        if v_hat <= self.lens.focal_length_mm:
+            return fit
+        z = self.lens.depth_from_v(v_hat)
+        sigma_z = abs(self.lens.dz_dv(v_hat)) * sigma_v
+        return replace(fit, v_hat_mm=v_hat, z_m=z, sigma_m=sigma_z, sigma_v_mm=sigma_v)
 
     def reject_pending(self, reason: str) -> None:
         """Drop the pending burst and count it with ``reason`` (e.g. a depth jump inside it)."""

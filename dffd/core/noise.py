@@ -37,7 +37,8 @@ from scipy import stats
 # error ``|1 − slope| × offset`` that no cost noise shows. Slopes measured on the reference
 # optics only (docs/estimation.md §8: 0.925 for the peak gradient, 1.005–1.014 for the edge
 # second moment; the aberrated optics gave 0.92 / 0.98–1.0, not used).
-MODEL_SLOPE_ERROR = {"peak_gradient": 0.075, "edge_variance": 0.014}
+# "debiased_peak" fits the peak gradient's slope against the edge moment's (dffd.core.combine).
+MODEL_SLOPE_ERROR = {"peak_gradient": 0.075, "edge_variance": 0.014, "debiased_peak": 0.014}
 # Two-sided 2σ probability of a Gaussian (the coverage an honest σ gives).
 _TWO_SIGMA_P = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))  # 0.97725
 # Above this many degrees of freedom the Student-t factor is ~1 (1.0009 at 1000).

@@ -44,6 +44,7 @@ class DiscScene:
     noise_std: float = 2.0
     f_number: float = 2.9
     breathing: bool = False  # image scale v0/p (thin-lens chief ray) instead of f/p (pinhole)
+    psf: Psf = "disc"  # render_disc's PSF; "aberrated" takes the blur's sign from the side of focus
 
 
 def render_disc(
@@ -112,6 +113,8 @@ def render_scene(
     cy = scene.height / 2 + y * MM_PER_M * mag
     radius = scene.radius_m * MM_PER_M * mag
     blur = lens.blur_radius_px(v0, v, scene.f_number)
+    if v0 < v:
+        blur = -blur
     return render_disc(
         scene.width,
         scene.height,
@@ -123,6 +126,7 @@ def render_scene(
         background=scene.background,
         noise_std=scene.noise_std,
         rng=rng,
+        psf=scene.psf,
     )
 
 
