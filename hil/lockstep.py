@@ -427,13 +427,18 @@ class _Runner:
             res.full_sweep_depth_hz = self._sweep.completed / res.duration_s
             res.extra["sweep_settings"] = self._sweep.frames_per_depth
             return
-        counts = res.extra.get("burst_counts", [])
-        halves = [0.5 * (max(c) - min(c)) for c in counts if len(c) >= 3]
-        if halves:
-            spacing = int(np.median(halves))
-            limit = depth_rate_limit(self.sched_config, spacing)
+        counts = [sorted(c) for c in res.extra.get("burst_counts", []) if len(c) >= 3]
+        if counts:
+            spacing = int(np.median([0.5 * (c[-1] - c[0]) for c in counts]))
+            # the two sides apart: brackets symmetric in v are not in counts (budget.py)
+            sides = (
+                int(np.median([c[1] - c[0] for c in counts])),
+                int(np.median([c[-1] - c[1] for c in counts])),
+            )
+            limit = depth_rate_limit(self.sched_config, sides)
             res.depth_limit_hz = limit.depth_hz
             res.extra["median_burst_half_span_counts"] = spacing
+            res.extra["median_burst_sides_counts"] = list(sides)
         # bursts the core dropped before a fit (fewer than three frames with a cost), by reason
         res.extra["burst_drops"] = dict(self.pipeline.burst_rejections)
         res.extra["measure_fallbacks"] = self.pipeline.measure_fallbacks

@@ -777,6 +777,17 @@ def test_rolling_rate_limit_by_hand() -> None:
     assert classic.cycle_frames == 6 + 11 + 6 + 1
 
 
+def test_rate_limit_of_a_bracket_with_unequal_sides() -> None:
+    # Brackets symmetric in v are not in counts: each side's move costs its own frames. A
+    # 3500-count move: 9.4+16.7+175+3.1 ms + 16 ms of exposure and guards → 7 periods.
+    assert depth_rate_limit(ROLL, (3000, 3000)) == depth_rate_limit(ROLL, 3000)
+    limit = depth_rate_limit(ROLL, (3000, 3500))
+    assert limit.move_frames == (6, 7)
+    assert limit.cycle_frames == 13  # one end and back per depth: 6 and 7 on average
+    classic = depth_rate_limit(replace(ROLL, burst_mode="classic"), (3000, 3500))
+    assert classic.move_frames == (6, 12, 7)
+
+
 @pytest.mark.parametrize("every", [1, 2, 4])
 def test_rolling_tags_alternate_ends_and_reach_the_rate_limit(every: int) -> None:
     cfg = replace(ROLL, burst_every_frames=every)
@@ -815,6 +826,81 @@ def test_rolling_plan_survives_transit_frames_and_end_uses_the_latest_plan() -> 
     assert late
     assert set(late) <= {2500, 8500}
     assert h.wrong == []
+
+
+def test_the_first_rolling_burst_opens_at_the_end_nearest_the_lens() -> None:
+    # No depth yet (σ unknown) and the lens away from the plan: straight to the nearest end, then
+    # the middle, then the other end — not the middle first (one dwell and a long move saved).
+    h = Harness(ROLL, plan=(6000, 9000, 12000))
+    h.run(2.0)
+    assert h.wrong == []
+    tagged = [
+        (mid, tag)
+        for _, mid, tag in h.tags
+        if tag.role in ("burst", "track") and tag.focus_counts != ROLL.initial_focus_counts
+    ]
+    first_mid, first = tagged[0]
+    assert first.role == "burst"
+    assert first.focus_counts == 6000
+    ends = [(mid, tag.focus_counts) for mid, tag in tagged if tag.role == "burst"]
+    assert [c for _, c in ends[:3]] == [6000, 12000, 6000]
+    middles = [mid for mid, tag in tagged if tag.role == "track" and tag.focus_counts == 9000]
+    assert first_mid < middles[0] < ends[1][0]
+    assert h.sched.stats.rolling_openings == 1
+    assert h.sched.stats.bursts_completed >= 2
+
+
+def test_with_a_depth_a_retarget_refocuses_the_middle_first() -> None:
+    # σ known: the burst policy decides when to burst; a far plan only re-focuses the lens.
+    h = Harness(replace(ROLL, burst_every_frames=4), plan=(6000, 9000, 12000), sigma=0.01)
+    h.run(2.0)
+    assert h.wrong == []
+    first = next(
+        tag
+        for _, _, tag in h.tags
+        if tag.role in ("burst", "track") and tag.focus_counts != ROLL.initial_focus_counts
+    )
+    assert (first.role, first.focus_counts) == ("track", 9000)
+
+
+@dataclass
+class _JumpHarness(Harness):
+    """Moves the plan far away while the next rolling end is committed but not yet moved to
+    (the live case: the plan comes with the frame the end was committed at)."""
+
+    jump: tuple[int, int, int] = (12000, 15000, 18000)
+    jumped_at: float | None = None
+
+    def step(self, now: float) -> None:
+        super().step(now)
+        if self.jumped_at is None and now > 1.0 and self.sched.phase == "burst_wait":
+            self.plan = self.jump
+            self.jumped_at = now
+
+
+def test_a_rolling_end_is_never_taken_across_a_plan_jump() -> None:
+    # The lens re-focuses the new middle before any end, and the next end lies on the same
+    # side of that middle as the last end, so the core opens a sequence instead of fitting a
+    # bracket of the old end, the old middle and a new end.
+    h = _JumpHarness(ROLL, plan=(2000, 5000, 8000), sigma=0.5)
+    h.run(3.0)
+    assert h.wrong == []
+    assert h.jumped_at is not None
+    last_end = [
+        tag.focus_counts for _, mid, tag in h.tags if tag.role == "burst" and mid < h.jumped_at
+    ][-1]
+    assert last_end is not None
+    assert last_end < 15000
+    new = [
+        tag
+        for _, mid, tag in h.tags
+        if mid > h.jumped_at
+        and tag.role != "transit"
+        and tag.focus_counts not in (2000, 5000, 8000)
+    ]
+    assert (new[0].role, new[0].focus_counts) == ("track", 15000)
+    ends = [tag.focus_counts for tag in new if tag.role == "burst"]
+    assert ends[:3] == [12000, 18000, 12000]  # the first below the middle, as the last end
 
 
 # -- closed loop: a modelled head and a target at a constant angular velocity ------------------

@@ -33,9 +33,14 @@ def focus_move_time_s(config: SchedulerConfig, delta_counts: int) -> float:
 
 
 def depth_rate_limit(
-    config: SchedulerConfig, spacing_counts: int, *, predictive: bool = True
+    config: SchedulerConfig, spacing_counts: int | tuple[int, int], *, predictive: bool = True
 ) -> RateLimit:
     """Theoretical depth measurements per second for brackets ``c−s, c, c+s`` (docs/design.md §5.5).
+
+    ``spacing_counts``: the half-span ``s``, or the bracket's two sides ``(c − lo, hi − c)``: the
+    core's brackets are symmetric in ``v``, not in counts (the lens table is not linear), and a
+    side a few hundred counts longer can need one frame period more than the other (measured:
+    2774 and 3150 counts on the reference lens at 30 fps, 6 and 7 periods).
 
     A move issued when a claimed exposure ends (+margin) and completed ``t_move`` later makes the
     next usable exposure ``ceil((E + 2·guard + t_move)/T)`` periods after the claimed one. Without
@@ -48,16 +53,21 @@ def depth_rate_limit(
     burst) and ``s`` back, plus the tracking frames at the middle beyond the first
     (``max(1, burst_every_frames) − 1``): a depth every two half-bracket moves.
     """
-    spacing = abs(int(spacing_counts))
+    if isinstance(spacing_counts, tuple):
+        low, high = abs(int(spacing_counts[0])), abs(int(spacing_counts[1]))
+    else:
+        low = high = abs(int(spacing_counts))
     period = config.period_s
     wait = config.exposure + 2.0 * config.guard_s
     if not predictive:
         wait += config.capture_latency_frames * period
     rolling = config.burst_mode == "rolling"
+    spaced = low > 0 or high > 0
     if rolling:
-        moves: tuple[int, ...] = (spacing, spacing) if spacing else ()
+        # Alternate cycles go to either end and back: on average one move of each side.
+        moves: tuple[int, ...] = (low, high) if spaced else ()
     else:
-        moves = (spacing, 2 * spacing, spacing) if spacing else ()
+        moves = (low, low + high, high) if spaced else ()
     move_s = tuple(focus_move_time_s(config, d) for d in moves)
     move_frames = tuple(max(1, math.ceil((wait + t) / period - 1e-9)) for t in move_s)
     if rolling:
