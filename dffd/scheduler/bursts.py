@@ -64,6 +64,7 @@ class Burst:
     tag_slots: tuple[int, ...] = ()  # slot numbers in the tags (default: 0, 1, 2, …)
     rolling: bool = False
     side: int = 0  # rolling: +1 the plan's high end, −1 its low end
+    opening: bool = False  # rolling: taken away from the middle on purpose (opens a sequence)
 
     def missed(self, t: float, tol: float) -> bool:
         """A claimed exposure of this burst is over (``t`` past it by ``tol``) but not tagged."""

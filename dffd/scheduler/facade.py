@@ -94,6 +94,7 @@ class Scheduler:
         self._centroid_t = -math.inf
         # Rolling bracket: the side of the next end (+1 high counts, −1 low).
         self._rolling_side = -1
+        self._last_end_counts: int | None = None  # the last rolling end's focus
         self._transit_ts: deque[float] = deque(maxlen=TRANSIT_HISTORY)
         # Pan/tilt.
         self._pt = PanTiltHead(config)
@@ -368,6 +369,11 @@ class Scheduler:
             assert self._counts is not None
             home = self._track_counts
             if home is not None and abs(home - self._counts) > self._retarget_threshold():
+                if self._opens_rolling_here(now):
+                    # Before the first depth: open a sequence at the plan's end nearest the lens
+                    # instead of going to the middle first (saves a middle dwell and the travel
+                    # to the middle; no bracket made of two plans).
+                    return self._open_rolling(now)
                 # The best focus drifted away from the lens: re-focus the tracking frames.
                 return self._issue_move(home, now, "return_move")
             if self._should_burst(now):
@@ -383,7 +389,10 @@ class Scheduler:
                 # a tracking frame, and the plan of the frame before it (delivered by now) carries
                 # the burst the core fitted there (committing at the claim would use a plan one
                 # burst older; docs/estimation.md §6.1).
+                if not burst.opening and self._plan_left_the_lens():
+                    return self._retarget_rolling(burst, now)
                 burst.order = (self._plan[-1] if burst.side > 0 else self._plan[0],)
+                self._last_end_counts = burst.order[0]
             return self._issue_move(burst.order[0], now, "burst_move")
         if self._phase == "burst_dwell":
             burst = self._burst
@@ -515,6 +524,66 @@ class Scheduler:
             burst.start_at = self._clock.end_of(claim_mid) + self.config.guard_s
             self._phase = "burst_wait"
         return self._focus_step(now)
+
+    def _opens_rolling_here(self, now: float) -> bool:
+        """Rolling, a plan but no depth yet (σ unknown: a burst is due at once), frames flowing.
+
+        Then a re-target opens a new sequence at the plan's end nearest the lens. Going to the
+        middle first would make the next end close a burst with the previous end, of the older
+        plan: after the first, full-range burst that bracket spans two plans; on the demo it was
+        dropped (no cost at the far end) or fitted 1.3-4.7 m off for a target at 10 m, and the
+        first depth waited for one more end.
+        """
+        if self.config.burst_mode != "rolling" or self._plan is None or self._sigma is not None:
+            return False
+        return self._clock.t_ref is not None and self._frames_flowing(now)
+
+    def _open_rolling(self, now: float) -> Action | None:
+        """Move straight to the plan's end nearest the lens: the end that opens a sequence."""
+        assert self._plan is not None
+        assert self._counts is not None
+        lo, hi = self._plan[0], self._plan[-1]
+        side = 1 if abs(hi - self._counts) < abs(lo - self._counts) else -1
+        self._rolling_side = -side  # the next burst takes the other end
+        burst = Burst(
+            self._next_burst_id, (hi if side > 0 else lo,), tag_slots=(ROLLING_SLOT,),
+            rolling=True, side=side, start_at=now, opening=True,
+        )  # fmt: skip
+        self._next_burst_id += 1
+        self._burst = burst
+        self._bursts.pending.append(burst)
+        self._burst_now = False
+        self.stats.bursts_started += 1
+        self._phase = "burst_wait"
+        return self._focus_step(now)
+
+    def _plan_left_the_lens(self) -> bool:
+        """The plan's bracket no longer contains the lens (where the middle frames were taken):
+        an end of this plan would make a bracket of two plans. (A plan that drifts with the
+        target, as in steady tracking, keeps the lens inside its bracket.)"""
+        plan = self._plan
+        assert plan is not None
+        assert self._counts is not None
+        return not plan[0] <= self._counts <= plan[-1]
+
+    def _retarget_rolling(self, burst: Burst, now: float) -> Action | None:
+        """Drop the end not yet moved to, re-focus the middle; the next end opens a sequence.
+
+        Measured on the demo (target at 10 m, first bracket over the working range): the lens
+        went from the old middle straight to the new plan's far end, and the core closed a
+        burst of the old plan's end, the old middle and that end — dropped ("depth jump") or
+        fitted 1.8-3.3 m off, and published as the first depth. The next end is taken on the same
+        side of the new middle as the last end, so the core opens a sequence with it.
+        """
+        if burst in self._bursts.pending:
+            self._bursts.pending.remove(burst)
+        self.stats.bursts_started -= 1  # never started: no move, no claim
+        self._burst = None
+        assert self._track_counts is not None
+        last = self._last_end_counts
+        if last is not None:
+            self._rolling_side = 1 if last > self._track_counts else -1
+        return self._issue_move(self._track_counts, now, "return_move")
 
     def _advance_burst(self, now: float) -> Action | None:
         burst = self._burst
