@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parent.parent
 ISSUE_15_KEYS = {
     "latency_p50", "latency_p99", "core_vs_tuned", "service_cpu", "replay_fps",
     "first_estimate_warm", "first_estimate_fresh", "rss_slope", "help_dffd", "help_run",
-    "help_replay", "help_sim-camera",
+    "help_replay", "help_sim-camera", "first_depth_warm",
     *(f"core_{r}_{s}" for r in ("track", "burst", "transit", "acquire") for s in ("mean", "p99")),
 }  # fmt: skip
 
@@ -58,6 +58,11 @@ def _raw() -> dict:
             | {f"dffd {c} --help": 0.1 for c in ("run", "replay", "sim-camera")},
         },
         "depth_rate": {"static": {"steady_depth_hz": 2.4, "limit": limit}},
+        "bench_start": {
+            "median_first_estimate_s": 2.1,
+            "median_first_depth_s": 4.6,
+            "runs": [{"first_depth_m": 9.9, "first_depth_truth_m": 10.0}],
+        },
     }
 
 
@@ -78,6 +83,8 @@ def test_every_issue_15_figure_has_value_baseline_goal_and_verdict() -> None:
     assert by_key["latency_p99"]["ok"] is False  # 9 ms against 8 ms
     assert by_key["depth_ratio_static"]["value"] == pytest.approx(0.96)
     assert "motor 90/90 + link 29 ms" in by_key["depth_ratio_static"]["name"]
+    assert by_key["first_depth_warm"]["ok"] is True  # 4.6 s against 5 s
+    assert "off by ≤ 0.10 m" in by_key["first_depth_warm"]["name"]
 
 
 def test_missing_components_give_figures_without_values() -> None:

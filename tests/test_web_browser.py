@@ -106,13 +106,14 @@ async def test_dashboard_video_plot_and_roi_drag(
     await wait_for(
         "state tracking", lambda: browser.find_element(By.ID, "state").text == "TRACKING"
     )
-    await asyncio.to_thread(browser.save_screenshot, str(tmp_path / "dashboard.png"))
 
     # The 3D track: acceleration, angular speed, position σ and the model probabilities render.
     def text(element_id: str) -> str:
         return str(browser.find_element(By.ID, element_id).text)
 
     await wait_for("the 3D track", lambda: text("track-sigma") != "–")
+    # docs/dashboard.png is this screenshot (pytest --basetemp=DIR, then copy it from there).
+    await asyncio.to_thread(browser.save_screenshot, str(tmp_path / "dashboard.png"))
     numbers = r"-?\d+\.\d+"
     assert re.fullmatch(rf"{numbers}, {numbers}, {numbers}", text("track-acc"))
     assert re.fullmatch(rf"{numbers} rad/s \({numbers}°/s\)", text("track-omega"))
