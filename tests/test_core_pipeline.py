@@ -225,6 +225,26 @@ def test_rolling_end_after_a_same_side_end_opens_a_new_sequence() -> None:
     assert not pipe.burst_rejections
 
 
+def test_rolling_end_of_another_bracket_opens_a_new_sequence() -> None:
+    # Ends on both sides of the middle but 10x apart: the first end belongs to an older, wider
+    # plan (the full-range first burst); a bracket of the two would be fitted from a lopsided
+    # triple (on the demo 1.7 m off). The second end opens a sequence; the next one closes it.
+    pipe = Pipeline(SERVICE, LENS)
+    c = LENS.counts_for_depth(5.0)
+    pipe.process(*_frame(0, 0.0, 5.0, c))
+    frame, _ = _frame(1, 0.2, 5.0, c + 2000)
+    pipe.process(frame, FrameTag("burst", c + 2000, 0.0, 0.0, (1, 2)))
+    pipe.process(*_frame(2, 0.4, 5.0, c))
+    frame, _ = _frame(3, 0.6, 5.0, c - 200)
+    pipe.process(frame, FrameTag("burst", c - 200, 0.0, 0.0, (2, 2)))
+    assert pipe.process(*_frame(4, 0.8, 5.0, c)).measurement is None
+    frame, _ = _frame(5, 1.0, 5.0, c + 210)
+    pipe.process(frame, FrameTag("burst", c + 210, 0.0, 0.0, (3, 2)))
+    out = pipe.process(*_frame(6, 1.2, 5.0, c))
+    assert out.measurement is not None
+    assert sorted(out.measurement.focus_counts) == [c - 200, c, c + 210]
+
+
 def test_every_frame_with_a_contour_yields_an_estimate() -> None:
     """Burst and transit frames step the estimators too: estimates at the frame rate."""
     pipe = Pipeline(replace(SERVICE, plan_lead_s=0.0, measurement_time_offset_s=0.0), LENS)

@@ -38,6 +38,13 @@ logger = logging.getLogger(__name__)
 # Memoised focus settings (lens table look-ups): the counts of a session span a few thousand
 # values at most; the cache is emptied when it reaches this size.
 V_CACHE_ENTRIES = 4096
+# A rolling burst is both ends of one bracket around its middle: the scheduler re-focuses the
+# middle within a quarter of a bracket step of the plan's (sides up to 1.25/0.75 = 1.7 apart in
+# v, plus the plan's drift between the two ends). Sides further apart are ends of two plans —
+# on the demo, the full-range first burst's end with the next plan's middle and end, (7371, 7629,
+# 10654) counts, sides 11x apart, fitted 1.7 m off and published as the first depth — so such an
+# end opens a new sequence instead.
+ROLLING_MAX_SIDE_RATIO = 3.0
 
 # ln(s(t_i)/s(t_mid)) for a burst's frame times and mid-time, or None (no compensation).
 LogSizeRatios = Callable[[list[float], float], "list[float] | None"]
@@ -307,6 +314,7 @@ class BurstAssembler:
             or not prev.t < mid.t < sample.t
             or sample.t - prev.t > self.rolling_max_span_s
             or (prev.counts - mid.counts) * (sample.counts - mid.counts) >= 0
+            or not _one_bracket(prev, mid, sample)
         ):
             logger.debug("rolling burst %d opens a sequence (no previous end to close)", bid)
             return
@@ -316,3 +324,9 @@ class BurstAssembler:
     def _reject(self, bid: int, reason: str) -> None:
         self.rejections[reason] += 1
         logger.debug("burst %d rejected: %s", bid, reason)
+
+
+def _one_bracket(prev: BurstSample, mid: BurstSample, end: BurstSample) -> bool:
+    """The two ends lie about as far from the middle in v (see ROLLING_MAX_SIDE_RATIO)."""
+    a, b = abs(prev.v_mm - mid.v_mm), abs(end.v_mm - mid.v_mm)
+    return max(a, b) <= ROLLING_MAX_SIDE_RATIO * min(a, b)
