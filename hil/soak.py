@@ -8,8 +8,8 @@ loopback port as :mod:`hil.realtime` starts it), subscribes to ``…/estimate`` 
 * RSS slope in MiB/hour (least squares over the last half of the run, and not before
   ``WARMUP_S``) and min/max;
 * CPU % of one core (utime + stime over the run after the first estimate), and the service's
-  share: minus the simulator's render threads (``asyncio_*``, the default executor its frame
-  source renders in; the simulated VISCA device on the event loop stays in, a small part), and
+  share: minus the simulator's render thread (``sim-render``; the simulated VISCA device on the
+  event loop stays in, a small part), and
   each thread's share (the daemon runs under :mod:`hil.threadnames` so the kernel knows them);
 * exposure → subscriber latency percentiles (reception minus the payload's ``t_mono``), that
   minus the simulated capture chain's nominal delivery lag, and frame delivered → subscriber
@@ -71,10 +71,10 @@ MAX_LATENCY_SAMPLES = 30 * 86_400
 # Delivery times of the last frames kept to match estimates against: 10 s at 30 fps.
 TRUTHS_KEPT = 300
 MIB = 1024.0
-# The simulated frame source renders in asyncio's default executor (asyncio.to_thread), whose
-# threads are "asyncio_0", "asyncio_1", … (kernel names set by hil.threadnames); the daemon
-# itself uses that executor only at start and stop.
-SIM_THREAD_PREFIX = "asyncio_"
+# The simulated frame source renders in its own thread, "sim-render" (drivers/sim/source.py;
+# kernel names set by hil.threadnames). Older trees rendered in asyncio's default executor
+# ("asyncio_0", "asyncio_1", …), which the daemon itself uses only at start and stop.
+SIM_THREAD_PREFIXES = ("sim-render", "asyncio_")
 
 
 @dataclass
@@ -145,7 +145,7 @@ def summarize(
         else {}
     )
     sim_pct = (
-        sum(v for k, v in shares.items() if k.startswith(SIM_THREAD_PREFIX)) if shares else None
+        sum(v for k, v in shares.items() if k.startswith(SIM_THREAD_PREFIXES)) if shares else None
     )
     slope_from = max(WARMUP_S, (1.0 - SLOPE_FRACTION) * run_s)
     steady = [(t, rss) for t, _, rss in samples if t >= slope_from]

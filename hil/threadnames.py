@@ -3,7 +3,7 @@
 Python (before 3.14) does not give its threads a name the kernel sees: every thread of the daemon
 is ``python`` in ``/proc/PID/task/*/comm``. This shim sets each thread's kernel name to its
 Python name (``prctl(PR_SET_NAME)``, first 15 bytes) when it starts — ``dffd-estimator``,
-``dffd-jsonlog``, ``asyncio_0`` (the default executor the simulator renders in) — and the main
+``dffd-jsonlog``, ``sim-render`` (the simulated frame source) — and the main
 thread's to ``dffd-loop``, then runs ``python -m dffd ARGS…`` unchanged. The soak reads the CPU
 of each thread by that name. Bench-only: the product does not depend on it.
 """

@@ -10,9 +10,11 @@ the pure :class:`~dffd.scheduler.Scheduler` and the estimation core. Layout at r
   feedback), **status** (retained status, console, sd_notify watchdog), and the MQTT
   **publisher**;
 * ONE estimator thread running the core behind ONE bounded frame queue (drop-oldest, counted:
-  capture never blocks); results come back through ``loop.call_soon_threadsafe`` into a bounded
-  queue (drop-oldest, counted). Commands that change the core (acquire, release, known size)
-  are applied by that thread between frames, so the core is never touched concurrently.
+  capture never blocks); results come back in ONE hand-off per frame: a bounded buffer
+  (drop-oldest, counted) and one ``loop.call_soon_threadsafe`` that handles them on the loop
+  at once (payloads, MQTT, JSONL log, scheduler feedback), without a queue and a task switch
+  between. Commands that change the core (acquire, release, known size) are applied by that
+  thread between frames, so the core is never touched concurrently.
 
 This module is the shell; each part is a module of its own: :mod:`~dffd.daemon.estimator` (the
 thread and its queue), :mod:`~dffd.daemon.actuators` (the focus and pan/tilt workers),
@@ -52,7 +54,9 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -191,7 +195,12 @@ class Daemon:
         self.stop_requested = asyncio.Event()
         self._parts = _Parts()
         self._wake = asyncio.Event()
-        self._results: asyncio.Queue[EstimatorResult] = asyncio.Queue(RESULT_QUEUE_MAX)
+        # Estimator output waiting for the loop (see _hand_over): filled by the estimator thread,
+        # drained on the loop; one call_soon_threadsafe per drain.
+        self._results: deque[EstimatorResult] = deque()
+        self._results_lock = threading.Lock()
+        self._drain_pending = False
+        self._results_failed: asyncio.Future[None] | None = None
         self.results_dropped = 0
         self.payloads = Payloads(config.estimators.best)
         self.first_depth = FirstDepthGate()  # no depth published before a bracketed burst
@@ -322,9 +331,7 @@ class Daemon:
                     on_command=self._on_command,
                 )
                 loop = asyncio.get_running_loop()
-                estimator = EstimatorThread(
-                    core, lambda r: loop.call_soon_threadsafe(self._on_result, r)
-                )
+                estimator = EstimatorThread(core, lambda r: self._hand_over(loop, r))
                 estimator.start()
                 self._parts.estimator = estimator
                 assert self.scheduler is not None
@@ -365,6 +372,7 @@ class Daemon:
                     self.camera = camera
                     actuators = Actuators(camera, self.scheduler, self._wake.set)
                     await source.start()
+                    self._results_failed = asyncio.get_running_loop().create_future()
                     tasks = [
                         group.create_task(self._capture_loop(source), name="capture"),
                         group.create_task(
@@ -372,7 +380,7 @@ class Daemon:
                         ),
                         group.create_task(actuators.run_focus(), name="focus"),
                         group.create_task(actuators.run_pan_tilt(), name="pan-tilt"),
-                        group.create_task(self._results_loop(), name="results"),
+                        group.create_task(self._results_loop(self._results_failed), name="results"),
                         group.create_task(self._status_loop(), name="status"),
                     ]
                     await self._wait_for_stop()
@@ -485,54 +493,86 @@ class Daemon:
                 async with asyncio.timeout(delay):
                     await self._wake.wait()
 
-    def _on_result(self, result: EstimatorResult) -> None:
-        """On the loop (via call_soon_threadsafe): queue a result, dropping the oldest."""
-        if self._results.full():
-            self._results.get_nowait()
-            self.results_dropped += 1
-        self._results.put_nowait(result)
+    def _hand_over(self, loop: asyncio.AbstractEventLoop, result: EstimatorResult) -> None:
+        """In the estimator thread: buffer a result (dropping the oldest beyond
+        :data:`RESULT_QUEUE_MAX`) and wake the loop once for everything buffered."""
+        with self._results_lock:
+            if len(self._results) >= RESULT_QUEUE_MAX:
+                self._results.popleft()
+                self.results_dropped += 1
+            self._results.append(result)
+            if self._drain_pending:  # the loop has not drained the last wake-up's yet
+                return
+            self._drain_pending = True
+        loop.call_soon_threadsafe(self._drain_results)
 
-    async def _results_loop(self) -> None:
+    def _drain_results(self) -> None:
+        """On the loop: handle every buffered result now, in order."""
+        with self._results_lock:
+            batch = list(self._results)
+            self._results.clear()
+            self._drain_pending = False
+        for result in batch:
+            try:
+                self._on_result(result)
+            except Exception as exc:  # ends the results task, and with it the run (as before)
+                failed = self._results_failed
+                if failed is None or failed.done():
+                    raise
+                failed.set_exception(exc)
+                return
+
+    async def _results_loop(self, failed: asyncio.Future[None]) -> None:
+        """Results are handled in :meth:`_drain_results`; this task ends the run with the
+        exception one of them raised (a JSONL log failure, a bug), as a task of its own would."""
+        try:
+            await failed
+        finally:
+            self._results_failed = None
+
+    def _on_result(self, result: EstimatorResult) -> None:
+        """On the loop: publish, log and feed back one processed frame."""
         sched = self.scheduler
         log = self._parts.log
         publisher = self.publisher
         assert sched is not None
         assert log is not None
         assert publisher is not None
-        while True:
-            result = await self._results.get()
-            now = time.monotonic()
-            out = result.step.output
-            self.board.state = out.state
-            if out.state == "tracking":
-                self.board.message = None  # a release's or an acquire's note is over
-            if self.dashboard is not None:
-                self.dashboard.on_result(result.frame, result.step, result.cpu_s)
-            if out.measurement is not None:
-                self.first_depth.on_measurement(out.measurement)
-                self.board.on_measurement(now, out.measurement)
-                payload_m = self.payloads.measurement(out.measurement)
-                if payload_m is not None:
-                    log.append("measurement", payload_m)
-                    publisher.publish(payload_m)
-                    if self.dashboard is not None:
-                        self.dashboard.on_measurement(payload_m)
-            payload_e = None
-            if out.estimate is not None:
-                payload_e = self.payloads.estimate(out.estimate, result.step.track)
-                if payload_e is not None and not self.first_depth.passes(out.estimate):
-                    payload_e = without_depth(payload_e)
-            if payload_e is not None:
-                self.board.on_estimate(now, payload_e)
-                log.append("estimate", payload_e)
-                publisher.publish(payload_e)
+        failed = self._results_failed
+        if failed is None or failed.done():  # not serving (starting or stopping): nothing to do
+            return
+        now = time.monotonic()
+        out = result.step.output
+        self.board.state = out.state
+        if out.state == "tracking":
+            self.board.message = None  # a release's or an acquire's note is over
+        if self.dashboard is not None:
+            self.dashboard.on_result(result.frame, result.step, result.cpu_s)
+        if out.measurement is not None:
+            self.first_depth.on_measurement(out.measurement)
+            self.board.on_measurement(now, out.measurement)
+            payload_m = self.payloads.measurement(out.measurement)
+            if payload_m is not None:
+                log.append("measurement", payload_m)
+                publisher.publish(payload_m)
                 if self.dashboard is not None:
-                    self.dashboard.on_estimate(payload_e, self._truth_z(result.frame_index), now)
-            feedback = result.step.feedback
-            if feedback.plan is not None:
-                self.board.on_plan(feedback.plan)
-            feedback.apply(sched)
-            self._wake.set()
+                    self.dashboard.on_measurement(payload_m)
+        payload_e = None
+        if out.estimate is not None:
+            payload_e = self.payloads.estimate(out.estimate, result.step.track)
+            if payload_e is not None and not self.first_depth.passes(out.estimate):
+                payload_e = without_depth(payload_e)
+        if payload_e is not None:
+            self.board.on_estimate(now, payload_e)
+            log.append("estimate", payload_e)
+            publisher.publish(payload_e)
+            if self.dashboard is not None:
+                self.dashboard.on_estimate(payload_e, self._truth_z(result.frame_index), now)
+        feedback = result.step.feedback
+        if feedback.plan is not None:
+            self.board.on_plan(feedback.plan)
+        feedback.apply(sched)
+        self._wake.set()
 
     async def _status_loop(self) -> None:
         publisher = self.publisher
@@ -630,8 +670,8 @@ class Daemon:
 
     def _drop_pending_results(self) -> None:
         """Forget results of frames processed before a release: nothing stale is published."""
-        while not self._results.empty():
-            self._results.get_nowait()
+        with self._results_lock:
+            self._results.clear()
 
     def depth_limit_hz(self) -> float | None:
         """Theoretical depth-measurement rate of this configuration at the current spacing."""

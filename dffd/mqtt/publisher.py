@@ -25,6 +25,7 @@ import json
 import logging
 import socket
 import ssl
+import threading
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -274,6 +275,8 @@ class Publisher:
         kind = _kind_of(payload)
         if isinstance(payload, Status):
             self._latest_status = payload
+        elif self._outbox.empty() and self._send_now(kind, payload, data):
+            return
         if self._outbox.full():
             self._outbox.get_nowait()
             self._outbox.task_done()
@@ -432,6 +435,7 @@ class Publisher:
                 await asyncio.sleep(0)
         if replayed:
             _LOGGER.info("MQTT replayed %d messages from the outage backlog", replayed)
+        self._write_through(client)
         self._set_connected(client)
 
     async def _serve(self, client: aiomqtt.Client) -> None:
@@ -553,6 +557,70 @@ class Publisher:
             raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
         if not info.is_published():
             unsent.append((info, item))
+
+    def _send_now(self, kind: TopicKind, payload: Publishable, data: bytes | None) -> bool:
+        """Write a QoS 0 message to the socket now, from :meth:`publish`; False: queue it.
+
+        Only while connected, with nothing queued before it (order is kept) and paho's queue
+        below :data:`QOS0_UNSENT_MAX`: then the message is serialised and handed to paho here,
+        and the socket write happens in the same call (:meth:`_write_through`), without the
+        outbox, the sender task's wake-up and aiomqtt's writer registration (two loop
+        iterations and three syscalls per message). Anything else takes the queued path.
+        """
+        client = self._client
+        paho = getattr(client, "_client", None)
+        if paho is None or qos(kind) != 0:
+            return False
+        unsent = self._unsent
+        while unsent and unsent[0][0].is_published():
+            unsent.popleft()
+        if len(unsent) >= QOS0_UNSENT_MAX:
+            return False
+        item = _Outgoing(kind, payload, data)
+        info = paho.publish(
+            self.topics.name(kind), data if data is not None else payload.to_json(), 0,
+            retained(kind),
+        )  # fmt: skip
+        if info.rc != MQTT_ERR_SUCCESS:
+            # The connection is going down; the sender's path keeps the message for later.
+            return False
+        if not info.is_published():
+            unsent.append((info, item))
+        self._counts["published"] += 1
+        return True
+
+    def _write_through(self, client: aiomqtt.Client) -> None:
+        """Let paho write on the loop thread at once when a message is queued on it.
+
+        aiomqtt answers paho's "socket has data to write" with ``call_soon_threadsafe(
+        add_writer)``: a self-pipe write, an epoll registration and two loop iterations before
+        the ``send`` — per message. On the loop thread this hook calls paho's ``loop_write``
+        directly instead; only when the socket does not take everything (EAGAIN) is aiomqtt's
+        writer registered, as before. Calls from other threads (paho's connect, in aiomqtt's
+        executor) keep aiomqtt's path.
+        """
+        paho = getattr(client, "_client", None)
+        loop = self._loop
+        if paho is None or loop is None:
+            return
+        original = paho.on_socket_register_write
+        if original is None:
+            return
+        loop_thread = threading.get_ident()
+
+        def register_write(mqttc: Any, userdata: Any, sock: Any) -> None:
+            if threading.get_ident() != loop_thread:
+                original(mqttc, userdata, sock)
+                return
+            try:
+                mqttc.loop_write()
+            except Exception:  # noqa: BLE001 - aiomqtt's writer callback reports it (below)
+                original(mqttc, userdata, sock)
+                return
+            if mqttc.want_write():  # the socket is full: wait for it on the loop, as aiomqtt does
+                original(mqttc, userdata, sock)
+
+        paho.on_socket_register_write = register_write
 
     def _keep_unsent(self) -> None:
         """After a connection ends: QoS 0 messages paho never wrote go back, oldest first."""

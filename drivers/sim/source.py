@@ -10,8 +10,10 @@ the view and the focus with the right timing.
 Two ways to drive it:
 
 * live: ``await start()`` then ``await next_frame()`` (the :class:`~drivers.frames.FrameSource`
-  protocol); frames are rendered in a worker thread and handed over through a bounded
-  drop-oldest queue;
+  protocol); one render thread (``sim-render``) waits for each frame's delivery time, renders
+  it and hands it to the event loop with one ``call_soon_threadsafe`` into a bounded
+  drop-oldest queue — as a grabber's reader thread does, so the loop does no timing or
+  executor work per frame;
 * lock-step, in virtual time (benchmarks, tests): :meth:`SimFrameSource.render_frame` or
   :meth:`SimFrameSource.render` synchronously.
 
@@ -52,6 +54,8 @@ FOCUS_TRANSIT_SAMPLES = 5
 MIN_DEPTH_M = 0.05
 # Bound on one render hand-off while closing the live loop (a frame renders in a few ms).
 CLOSE_TIMEOUT_S = 2.0
+# The live render thread's name (the bench tells the simulator's CPU from the service's by it).
+RENDER_THREAD_NAME = "sim-render"
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,7 +125,9 @@ class SimFrameSource:
         self._dropped = 0
         self._queue: deque[Frame] = deque()
         self._ready = asyncio.Event()
-        self._task: asyncio.Task[None] | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._failure: BaseException | None = None  # what ended the render thread
         self._closed = False
 
     @classmethod
@@ -163,21 +169,26 @@ class SimFrameSource:
         """Begin rendering in real time from the next frame slot."""
         if self._closed:
             raise FrameSourceError("simulated frame source is closed; create a new one")
-        if self._task is None:
+        if self._thread is None:
             self._ready = asyncio.Event()
             first = max(0, math.ceil((self._clock() - self.t0) * self.fps))
-            self._task = asyncio.create_task(self._run(first), name="sim-frame-source")
-            self._task.add_done_callback(lambda _task: self._ready.set())
+            self._thread = threading.Thread(
+                target=self._run,
+                args=(asyncio.get_running_loop(), first),
+                name=RENDER_THREAD_NAME,
+                daemon=True,
+            )
+            self._thread.start()
 
     async def next_frame(self) -> Frame:
         """The oldest undelivered frame (wrap in ``asyncio.timeout``)."""
-        if self._task is None:
+        if self._thread is None:
             raise FrameSourceError("simulated frame source not started; call start() first")
         while not self._queue:
-            if self._closed or self._task is None:
+            if self._closed:
                 raise FrameSourceError("simulated frame source closed")
-            if self._task.done():
-                exc = None if self._task.cancelled() else self._task.exception()
+            if self._failure is not None:
+                exc = self._failure
                 raise FrameSourceError(f"simulated frame source stopped: {exc!r}") from exc
             self._ready.clear()
             await self._ready.wait()
@@ -186,12 +197,11 @@ class SimFrameSource:
     async def close(self) -> None:
         """Stop rendering; idempotent."""
         self._closed = True
-        task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                async with asyncio.timeout(CLOSE_TIMEOUT_S):
-                    await task
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None and thread.is_alive():
+            # The thread notices the stop within one render (a few ms).
+            await asyncio.to_thread(thread.join, CLOSE_TIMEOUT_S)
         self._ready.set()
 
     # -- lock-step / ground truth ------------------------------------------------------------
@@ -245,24 +255,39 @@ class SimFrameSource:
         return truth
 
     # -- internals ---------------------------------------------------------------------------
-    async def _run(self, index: int) -> None:
+    def _run(self, loop: asyncio.AbstractEventLoop, index: int) -> None:
+        """The render thread: each frame at its delivery time, handed to the loop once."""
         period = 1.0 / self.fps
-        while True:
-            delay = self.delivery_time(index) - self._clock()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            late = math.floor((self._clock() - self.delivery_time(index)) / period)
-            if late > 0:  # the loop stalled: those exposures are lost, as on a real grabber
-                self._dropped += late
-                log.debug("simulated capture %d frame(s) late; dropped", late)
-                index += late
-            frame = await asyncio.to_thread(self.render_frame, index)
-            if len(self._queue) >= self.capture.queue_frames:
-                self._queue.popleft()
-                self._dropped += 1
-            self._queue.append(frame)
-            self._ready.set()
-            index += 1
+        try:
+            while not self._stop.is_set():
+                delay = self.delivery_time(index) - self._clock()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                late = math.floor((self._clock() - self.delivery_time(index)) / period)
+                if late > 0:  # rendering fell behind: those exposures are lost, as on a grabber
+                    self._dropped += late
+                    log.debug("simulated capture %d frame(s) late; dropped", late)
+                    index += late
+                frame = self.render_frame(index)
+                try:
+                    loop.call_soon_threadsafe(self._deliver, frame)
+                except RuntimeError:  # the event loop closed under the thread: nobody waits
+                    return
+                index += 1
+        except Exception as exc:  # noqa: BLE001 - next_frame() raises it on the loop
+            self._failure = exc
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._ready.set)
+
+    def _deliver(self, frame: Frame) -> None:
+        """On the loop: queue a rendered frame (dropping the oldest) and wake the consumer."""
+        if self._closed:
+            return
+        if len(self._queue) >= self.capture.queue_frames:
+            self._queue.popleft()
+            self._dropped += 1
+        self._queue.append(frame)
+        self._ready.set()
 
     def _render(self, t: float, index: int | None) -> tuple[npt.NDArray[np.uint8], FrameTruth]:
         with self._render_lock:
