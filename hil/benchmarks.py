@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.bench_table import figure, write_readme
+from hil.soak import git_commit
 
 __all__ = ["BENCH_SCHEMA", "PARTS", "figures_from", "run_bench", "write_readme"]
 
@@ -132,7 +133,7 @@ def run_bench(out_dir: Path, *, quick: bool = False, only: Sequence[str] | None 
         "quick": quick,
         "only": sorted(parts) if only else None,
         "t": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "commit": _commit(),
+        "commit": git_commit(),
         # Other work on the machine slows every figure; the 1/5/15-minute load averages say how
         # much there was (2 cores: above 2 the bench shared them).
         "load_average": {"before": list(load_before), "after": list(os.getloadavg())},
@@ -673,18 +674,3 @@ def _other_figures(visca: dict[str, Any], render: dict[str, Any]) -> list[dict[s
             )
         )
     return out
-
-
-def _commit() -> str | None:
-    try:
-        proc = subprocess.run(
-            ["git", "describe", "--always", "--dirty"],  # noqa: S607 - git from PATH
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-            check=False,
-            timeout=10,
-        )
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return proc.stdout.strip() or None

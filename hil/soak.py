@@ -66,6 +66,8 @@ FRESH_START_TIMEOUT_S = 240.0
 # The broker connection is retried this often while the daemon starts.
 CONNECT_RETRY_S = 0.2
 DEFAULT_WINDOW_S = 60.0
+# `git describe` answers in milliseconds; a hung git must not hold up a result.
+GIT_TIMEOUT_S = 10.0
 # Latency samples kept (30 estimates/s for 24 h): bounds this process's own memory.
 MAX_LATENCY_SAMPLES = 30 * 86_400
 # Delivery times of the last frames kept to match estimates against: 10 s at 30 fps.
@@ -104,6 +106,8 @@ def run_soak(
     """Run the soak for ``seconds`` after the first estimate; write soak.json and soak.png."""
     window = window_s if window_s > 0 else min(DEFAULT_WINDOW_S, max(seconds / 10.0, 1.0))
     out_dir.mkdir(parents=True, exist_ok=True)
+    started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    load_before = os.getloadavg()
     try:
         trace = asyncio.run(_soak(seconds, scenario, out_dir, fresh_kernel_cache))
     except (RuntimeError, TimeoutError) as exc:
@@ -113,6 +117,11 @@ def run_soak(
     result = summarize(trace, seconds, window, sim_delivery_lag_ms())
     result["scenario"] = scenario
     result["fresh_kernel_cache"] = fresh_kernel_cache
+    # Where and when: a long soak's figures are quoted by the bench (hil.benchmarks), so they
+    # must say what they were measured on. Load above 2 means the 2 cores were shared.
+    result["t"] = started
+    result["commit"] = git_commit()
+    result["load_average"] = {"before": list(load_before), "after": list(os.getloadavg())}
     (out_dir / "soak.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
     plot(result, out_dir / "soak.png")
     print(format_summary(result))
@@ -349,6 +358,22 @@ async def _sample(pid: int, trace: _Trace) -> None:
         trace.threads.append(thread_cpu_s(pid))
         trace.samples.append((time.monotonic(), user + system, rss_kib(pid)))
         await asyncio.sleep(SAMPLE_PERIOD_S)
+
+
+def git_commit() -> str | None:
+    """``git describe --always --dirty`` of this tree (None outside a git checkout)."""
+    try:
+        proc = subprocess.run(
+            ["git", "describe", "--always", "--dirty"],  # noqa: S607 - git from PATH
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            check=False,
+            timeout=GIT_TIMEOUT_S,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return proc.stdout.strip() or None
 
 
 def sim_delivery_lag_ms() -> float:

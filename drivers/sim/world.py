@@ -466,13 +466,21 @@ def _plane_axes(position: FloatArray) -> tuple[FloatArray, FloatArray]:
     distance = float(np.linalg.norm(position))
     sight = position / distance if distance > 0.0 else np.array([0.0, 0.0, 1.0])
     down = np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(down, sight)
+    e1 = _cross(down, sight)
     norm = float(np.linalg.norm(e1))
     if norm < 1e-9:  # straight above or below the head: any horizontal axis will do
         e1, norm = np.array([1.0, 0.0, 0.0]), 1.0
     e1 = e1 / norm
-    e2 = np.cross(sight, e1)
+    e2 = _cross(sight, e1)
     return e1, e2
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``np.cross`` of two 3-vectors with the same float64 operations (multiply, then subtract),
+    so the same bits, without its axis handling: 0.2 ms a call, a third of a frame's geometry."""
+    a0, a1, a2 = (float(x) for x in a)
+    b0, b1, b2 = (float(x) for x in b)
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
 def _blob_texture(config: TargetConfig) -> npt.NDArray[np.float32]:
