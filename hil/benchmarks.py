@@ -10,8 +10,12 @@ same run**, its goal and whether it holds. The component benchmarks run in their
   hand-off, payload conversion and publisher, against a bare MQTT client's floor;
 * ``hil soak`` (the live daemon on the simulator) — frame delivered → subscriber latency (the
   service's own share, matched per frame through ``…/sim/truth``) at the daemon's estimate
-  rate, service CPU without the simulator's render threads, RSS slope, start → first estimate
-  with the kernels compiled ahead; a second, short start with an empty kernel cache;
+  rate, service CPU without the simulator's render thread, start → first estimate with the
+  kernels compiled ahead; a second, short start with an empty kernel cache;
+* the RSS slope is the goal's own measurement, a 30-minute soak: the bench quotes the latest
+  one committed (:data:`LONG_SOAK_FILE`, with its date, commit, length and estimate rate in the
+  figure's name) and reports its own 2-minute run's slope beside it, without a verdict (RSS
+  settles over the first minutes: bounded histories and caches filling);
 * ``hil.bench_cli`` — every ``dffd … --help`` against a bare interpreter start;
 * ``hil.bench_start`` — start → first depth of ``dffd run`` on its embedded default (the broker
   and dashboard ports moved), against start → first estimate of the same starts;
@@ -52,8 +56,12 @@ BENCH_SCHEMA = 2
 # One component may take this long (the fresh-cache start compiles ~25 s of kernels on a loaded
 # 2-core machine; the soak runs SOAK_S plus start-up); a hung one is killed and reported.
 COMPONENT_TIMEOUT_S = 600.0
-# The live daemon's measured run: long enough for a few hundred estimates and an RSS fit.
+# The live daemon's measured run: long enough for a few thousand estimates.
 SOAK_S = 120.0
+# The latest long soak (`python -m hil soak --minutes 30 --out DIR`, DIR/soak.json copied here):
+# the RSS slope the goal means, measured over 30 minutes. A shorter soak is not quoted.
+LONG_SOAK_FILE = REPO_ROOT / "docs" / "soak-30min.json"
+LONG_SOAK_MIN_S = 25 * 60.0
 QUICK_SOAK_S = 12.0
 # Lock-step depth-rate runs, per scenario (scenario seconds).
 RATE_DURATION_S = 30.0
@@ -125,6 +133,7 @@ def run_bench(out_dir: Path, *, quick: bool = False, only: Sequence[str] | None 
         raw["soak_fresh"] = (
             {"skipped": "--quick"} if quick else _soak(out_dir / "soak-fresh", 1.0, fresh=True)
         )
+    raw["soak_long"] = _long_soak(LONG_SOAK_FILE) if "soak" in parts else skipped
     raw["depth_rate"] = _depth_rates(quick) if "depth" in parts else skipped
     raw["replay"] = _replay(quick) if "replay" in parts else skipped
     figures = figures_from(raw, parts)
@@ -159,8 +168,8 @@ def figures_from(raw: dict[str, Any], parts: Collection[str] = PARTS) -> list[di
     part = {
         k: raw.get(k) or {}
         for k in (
-            "soak", "soak_fresh", "bench_publish", "bench_core", "replay", "bench_cli",
-            "depth_rate", "bench_visca", "bench_render", "bench_start",
+            "soak", "soak_fresh", "soak_long", "bench_publish", "bench_core", "replay",
+            "bench_cli", "depth_rate", "bench_visca", "bench_render", "bench_start",
         )
     }  # fmt: skip
     # Built only for the parts run (a part not run holds {"skipped": …}, not its results).
@@ -168,6 +177,7 @@ def figures_from(raw: dict[str, Any], parts: Collection[str] = PARTS) -> list[di
         ({"soak", "publish"}, lambda: _latency_figures(part["soak"], part["bench_publish"])),
         ({"core"}, lambda: _core_figures(part["bench_core"])),
         ({"soak"}, lambda: _service_figures(part["soak"], part["soak_fresh"])),
+        ({"soak"}, lambda: _memory_figures(part["soak"], part["soak_long"])),
         ({"start"}, lambda: _start_figures(part["bench_start"])),
         ({"replay"}, lambda: _replay_figures(part["replay"])),
         ({"cli"}, lambda: _help_figures(part["bench_cli"])),
@@ -205,6 +215,17 @@ def _component(module: str, args: list[str], *, out: Path | None = None) -> dict
     data["_wall_s"] = time.perf_counter() - t0
     data["_exit"] = proc.returncode
     return data
+
+
+def _long_soak(path: Path) -> dict[str, Any]:
+    """The summary of the committed long soak (its series left out), or why there is none."""
+    try:
+        doc: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        return {"missing": f"{path}: {exc}"}
+    return {k: v for k, v in doc.items() if k not in ("rss_series", "windows")} | {
+        "file": str(path.relative_to(REPO_ROOT) if path.is_relative_to(REPO_ROOT) else path)
+    }
 
 
 def _soak(out: Path, seconds: float, *, fresh: bool) -> dict[str, Any]:
@@ -491,8 +512,6 @@ def _service_figures(soak: dict[str, Any], fresh: dict[str, Any]) -> list[dict[s
     rate = soak.get("estimate_hz")
     warm = soak.get("start_to_first_estimate_s")
     cold = fresh.get("start_to_first_estimate_s")
-    rss = soak.get("rss_mib", {})
-    slope = rss.get("slope_mib_per_hour")
     at = "–" if rate is None else f"{rate:.1f}"
     return [
         figure(
@@ -525,15 +544,57 @@ def _service_figures(soak: dict[str, Any], fresh: dict[str, Any]) -> list[dict[s
             baseline_value=warm,
             ok=None if cold is None else cold <= FIRST_ESTIMATE_GOAL_S,
         ),
+    ]
+
+
+def _memory_figures(soak: dict[str, Any], long: dict[str, Any]) -> list[dict[str, Any]]:
+    """The RSS slope of the long soak (the goal's measurement) and of the bench's own run."""
+    goal = f"< {RSS_SLOPE_GOAL_MIB_H:g} MiB/h over 30 minutes"
+    rss = soak.get("rss_mib", {})
+    slope = rss.get("slope_mib_per_hour")
+    short = (
+        f"resident memory slope, the bench's {soak.get('run_s', 0):.0f} s run (least squares "
+        f"after {rss.get('slope_from_s', 0):.0f} s; RSS still settling)"
+    )
+    long_rss = long.get("rss_mib", {})
+    long_slope = long_rss.get("slope_mib_per_hour")
+    if long_slope is None or float(long.get("run_s") or 0.0) < LONG_SOAK_MIN_S:
+        # No long soak to quote: the short run is the only figure, and it carries the verdict.
+        return [
+            figure(
+                "rss_slope",
+                short,
+                slope,
+                "MiB/h",
+                goal,
+                baseline="lowest RSS of the run, MiB",
+                baseline_value=rss.get("min"),
+                ok=None if slope is None else abs(slope) < RSS_SLOPE_GOAL_MIB_H,
+            )
+        ]
+    rate = long.get("estimate_hz")
+    return [
         figure(
             "rss_slope",
-            f"resident memory slope over {soak.get('run_s', 0):.0f} s of the live daemon",
+            f"resident memory slope, {float(long['run_s']) / 60:.0f}-minute soak "
+            f"(`hil soak`, {long.get('file', 'long soak')}: commit {long.get('commit') or '?'}, "
+            f"{long.get('t') or 'date unknown'}, {'–' if rate is None else f'{rate:.1f}'} "
+            f"estimates/s; least squares after {float(long_rss.get('slope_from_s') or 0):.0f} s)",
+            long_slope,
+            "MiB/h",
+            goal,
+            baseline="lowest RSS of that soak, MiB",
+            baseline_value=long_rss.get("min"),
+            ok=abs(long_slope) < RSS_SLOPE_GOAL_MIB_H,
+        ),
+        figure(
+            "rss_slope_bench_run",
+            short,
             slope,
             "MiB/h",
-            f"< {RSS_SLOPE_GOAL_MIB_H:g} MiB/h (30-minute soak: python -m hil soak --minutes 30)",
+            "reported (the 30-minute soak above is the measurement)",
             baseline="lowest RSS of the run, MiB",
             baseline_value=rss.get("min"),
-            ok=None if slope is None else abs(slope) < RSS_SLOPE_GOAL_MIB_H,
         ),
     ]
 
@@ -671,6 +732,22 @@ def _other_figures(visca: dict[str, Any], render: dict[str, Any]) -> list[dict[s
                 baseline="budget, ms",
                 baseline_value=budget,
                 ok=overall["p95_ms"] <= budget,
+            )
+        )
+    cpu = render.get("overall_cpu")
+    if cpu:
+        budget = float(render.get("budget_ms", 5.0))
+        out.append(
+            figure(
+                "sim_render_cpu_p95",
+                "simulator render CPU per 640×480 frame, p95 (the rendering thread's CPU time; "
+                "the wall time above also holds the machine's other work)",
+                cpu["p95_ms"],
+                "ms",
+                f"≤ {budget:g} ms",
+                baseline="budget, ms",
+                baseline_value=budget,
+                ok=cpu["p95_ms"] <= budget,
             )
         )
     return out

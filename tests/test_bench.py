@@ -87,6 +87,29 @@ def test_every_issue_15_figure_has_value_baseline_goal_and_verdict() -> None:
     assert "off by ≤ 0.10 m" in by_key["first_depth_warm"]["name"]
 
 
+def test_rss_slope_quotes_the_long_soak_and_reports_the_short_run() -> None:
+    long = {
+        "run_s": 1800.0, "estimate_hz": 30.0, "commit": "abc1234", "t": "2026-11-24T01:14:00Z",
+        "file": "docs/soak-30min.json",
+        "rss_mib": {"slope_mib_per_hour": -0.4, "min": 250.0, "slope_from_s": 900.0},
+    }  # fmt: skip
+    by_key = {f["key"]: f for f in figures_from(_raw() | {"soak_long": long})}
+    rss = by_key["rss_slope"]
+    assert rss["value"] == pytest.approx(-0.4)
+    assert rss["ok"] is True
+    assert "30-minute soak" in rss["name"]
+    assert "abc1234" in rss["name"]
+    assert "2026-11-24T01:14:00Z" in rss["name"]
+    short = by_key["rss_slope_bench_run"]
+    assert short["value"] == pytest.approx(0.2)
+    assert short["ok"] is None
+    # A soak shorter than the goal's 30 minutes is not quoted: the bench's own run decides.
+    brief = long | {"run_s": 600.0}
+    by_key = {f["key"]: f for f in figures_from(_raw() | {"soak_long": brief})}
+    assert by_key["rss_slope"]["value"] == pytest.approx(0.2)
+    assert "rss_slope_bench_run" not in by_key
+
+
 def test_missing_components_give_figures_without_values() -> None:
     figures = figures_from({})
     assert figures, "the core figures are listed even when nothing was measured"
