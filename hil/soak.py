@@ -8,8 +8,8 @@ loopback port as :mod:`hil.realtime` starts it), subscribes to ``…/estimate`` 
 * RSS slope in MiB/hour (least squares over the last half of the run, and not before
   ``WARMUP_S``) and min/max;
 * CPU % of one core (utime + stime over the run after the first estimate), and the service's
-  share: minus the simulator's render thread (``sim-render``; the simulated VISCA device on the
-  event loop stays in, a small part), and
+  share: minus the simulator's threads (``sim-render``, its renderer; ``sim-camera``, its VISCA
+  device), and
   each thread's share (the daemon runs under :mod:`hil.threadnames` so the kernel knows them);
 * exposure → subscriber latency percentiles (reception minus the payload's ``t_mono``), that
   minus the simulated capture chain's nominal delivery lag, and frame delivered → subscriber
@@ -73,10 +73,11 @@ MAX_LATENCY_SAMPLES = 30 * 86_400
 # Delivery times of the last frames kept to match estimates against: 10 s at 30 fps.
 TRUTHS_KEPT = 300
 MIB = 1024.0
-# The simulated frame source renders in its own thread, "sim-render" (drivers/sim/source.py;
-# kernel names set by hil.threadnames). Older trees rendered in asyncio's default executor
-# ("asyncio_0", "asyncio_1", …), which the daemon itself uses only at start and stop.
-SIM_THREAD_PREFIXES = ("sim-render", "asyncio_")
+# The simulator's threads (kernel names set by hil.threadnames): its frame source renders in
+# "sim-render" (drivers/sim/source.py), its VISCA device serves from "sim-camera"
+# (dffd/daemon/simthread.py). Older trees rendered in asyncio's default executor ("asyncio_0",
+# "asyncio_1", …), which the daemon itself uses only at start and stop.
+SIM_THREAD_PREFIXES = ("sim-render", "sim-camera", "asyncio_")
 
 
 @dataclass

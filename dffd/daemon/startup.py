@@ -2,7 +2,8 @@
 
 Without ``--config`` (or with ``camera.driver = "sim"``) the camera is the simulator: its VISCA
 device on a real pty (:class:`~drivers.sim.server.SimCameraServer`) or on UDP/TCP
-(``sim.visca_transport``), its renderer as the frame source, ground truth on ``…/sim/truth``;
+(``sim.visca_transport``), served from a thread of its own (:mod:`dffd.daemon.simthread`), its
+renderer as the frame source, ground truth on ``…/sim/truth``;
 ``mqtt.url = "embedded"`` starts the embedded amqtt broker on 127.0.0.1. The world is
 ``sim.scenario``'s ``[target]`` and ``[trajectory]`` tables (a world shipped in
 ``drivers/sim/data/worlds/``, or a file path) applied to the simulated camera's own config types
@@ -25,6 +26,7 @@ from typing import Any
 
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
+from dffd.daemon.simthread import SimThread
 from dffd.scheduler import Scheduler
 from dffd.wiring import WiringError, capture_source, sim_camera_config, stream_source
 from drivers.frames import FrameSource, FrameSourceError
@@ -80,12 +82,18 @@ async def start_camera_transport(
         from drivers.sim.net_server import SimTcpServer
 
         net_cls = SimUdpServer if transport == "udp" else SimTcpServer
-        net = net_cls(rig.device_config, state=rig.state, faults=sim_faults)
-        await stack.enter_async_context(net)
+        net = await stack.enter_async_context(
+            SimThread[SimUdpServer | SimTcpServer](
+                lambda: net_cls(rig.device_config, state=rig.state, faults=sim_faults)
+            )
+        )
         _LOGGER.info("simulated camera on %s", net.url)
         return net.url, net, rig
-    server = SimCameraServer(rig.device_config, state=rig.state, faults=sim_faults)
-    await stack.enter_async_context(server)
+    # The simulated camera runs on its own event loop in its own thread (dffd.daemon.simthread):
+    # a real camera is another device, and the service's loop carries only the service.
+    server = await stack.enter_async_context(
+        SimThread(lambda: SimCameraServer(rig.device_config, state=rig.state, faults=sim_faults))
+    )
     _LOGGER.info("simulated camera on %s", server.path)
     return str(server.path), server, rig
 
