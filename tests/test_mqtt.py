@@ -313,6 +313,28 @@ async def test_data_flows_with_retained_online_and_offline_status(mosquitto: Mos
         assert json.loads(message.payload)["availability"] == "offline"  # type: ignore[arg-type]
 
 
+async def test_qos0_goes_out_within_publish_and_in_order(mosquitto: Mosquitto) -> None:
+    async with Publisher(settings(mosquitto), TOPICS) as publisher:
+        async with asyncio.timeout(MESSAGE_TIMEOUT_S):
+            await publisher.wait_connected()
+        async with subscribed(mosquitto, TOPICS.estimate) as sub:
+            sent = publisher.stats().published
+            publisher.publish(estimate(1))
+            # handed to paho and written in the call: nothing waits in the outbox or in paho
+            assert publisher.stats().published == sent + 1
+            assert publisher._outbox.empty()
+            assert not publisher._unsent
+            # while the sender task holds a message, later ones queue behind it (order kept)
+            publisher._sender_busy = True
+            publisher.publish(estimate(2))
+            assert publisher._outbox.qsize() == 1
+            publisher._sender_busy = False
+            publisher.publish(estimate(3))  # the outbox is not empty: queued too
+            assert publisher._outbox.qsize() == 2
+            seqs = [(await sub.next_json(TOPICS.estimate))["seq"] for _ in range(3)]
+            assert seqs == [1, 2, 3]
+
+
 async def test_a_status_sent_over_mqtt_says_mqtt_connected(mosquitto: Mosquitto) -> None:
     # The daemon builds its first status before the connection is up (connected false); what a
     # subscriber receives over that very connection must say connected (issue 13).

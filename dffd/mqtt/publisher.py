@@ -180,6 +180,7 @@ class Publisher:
         self._on_command = on_command
         self._version = version
         self._outbox: asyncio.Queue[_Outgoing] = asyncio.Queue(settings.queue_max_messages)
+        self._sender_busy = False  # the sender task holds a message taken from the outbox
         self._backlog: deque[_Outgoing] = deque()
         # QoS 0 messages written through the paho client, until its socket took them.
         self._unsent: deque[tuple[MQTTMessageInfo, _Outgoing]] = deque()
@@ -266,7 +267,9 @@ class Publisher:
     # -- publishing (never blocks) ----------------------------------------------------------
 
     def publish(self, payload: Publishable, data: bytes | None = None) -> None:
-        """Queue ``payload`` for its topic; drops the oldest queued message if the queue is full.
+        """Send ``payload`` on its topic: a QoS 0 message goes to the socket in this call while
+        connected (:meth:`_send_now`); anything else is queued, dropping the oldest queued
+        message if the queue is full.
 
         Call on the event loop thread; ``data``: the payload's JSON if the caller has it already
         (``payload.to_json()``). A Status is also remembered and re-sent (as ``online``) on
@@ -275,7 +278,7 @@ class Publisher:
         kind = _kind_of(payload)
         if isinstance(payload, Status):
             self._latest_status = payload
-        elif self._outbox.empty() and self._send_now(kind, payload, data):
+        elif not self._sender_busy and self._outbox.empty() and self._send_now(kind, payload, data):
             return
         if self._outbox.full():
             self._outbox.get_nowait()
@@ -485,6 +488,7 @@ class Publisher:
     async def _send_loop(self) -> None:
         while True:
             item = await self._outbox.get()
+            self._sender_busy = True  # publish() queues behind it (see _send_now)
             try:
                 client = self._client
                 if client is None:
@@ -496,6 +500,7 @@ class Publisher:
                     _LOGGER.debug("MQTT publish failed (%s); keeping the message", exc)
                     self._keep_for_later(item)
             finally:
+                self._sender_busy = False
                 self._outbox.task_done()
 
     async def _send(self, client: aiomqtt.Client, item: _Outgoing) -> None:
@@ -561,11 +566,12 @@ class Publisher:
     def _send_now(self, kind: TopicKind, payload: Publishable, data: bytes | None) -> bool:
         """Write a QoS 0 message to the socket now, from :meth:`publish`; False: queue it.
 
-        Only while connected, with nothing queued before it (order is kept) and paho's queue
-        below :data:`QOS0_UNSENT_MAX`: then the message is serialised and handed to paho here,
-        and the socket write happens in the same call (:meth:`_write_through`), without the
-        outbox, the sender task's wake-up and aiomqtt's writer registration (two loop
-        iterations and three syscalls per message). Anything else takes the queued path.
+        Only while connected, with nothing queued before it or held by the sender task (order
+        is kept) and paho's queue below :data:`QOS0_UNSENT_MAX`: then the message is serialised
+        and handed to paho here, and the socket write happens in the same call
+        (:meth:`_write_through`), without the outbox, the sender task's wake-up and aiomqtt's
+        writer registration (two loop iterations and three syscalls per message). Anything else
+        takes the queued path.
         """
         client = self._client
         paho = getattr(client, "_client", None)
