@@ -117,6 +117,9 @@ class SimFrameSource:
         self.world_epoch = self.t0 if world_epoch is None else world_epoch
         self._sensor = optics.make_sensor()
         self._render_lock = threading.Lock()
+        # The truth table has a lock of its own: a reader (the daemon's loop, for the frame it
+        # just received) must not wait for the next frame's render (3-10 ms) to finish.
+        self._truth_lock = threading.Lock()
         self._truth: OrderedDict[int, FrameTruth] = OrderedDict()
         self._jitter_rng = np.random.default_rng([seed, 0x4A17])
         self._jitter = 0.0
@@ -242,7 +245,7 @@ class SimFrameSource:
 
     def truth_for(self, index: int) -> FrameTruth | None:
         """Ground truth of a recently rendered frame (None if unknown or evicted)."""
-        with self._render_lock:
+        with self._truth_lock:
             return self._truth.get(index)
 
     def truth_near(self, t: float | None) -> FrameTruth | None:
@@ -294,9 +297,10 @@ class SimFrameSource:
             start = time.perf_counter()
             image, truth = self._render_locked(t, index)
             if index is not None:
-                self._truth[index] = truth
-                while len(self._truth) > self.capture.truth_frames:
-                    self._truth.popitem(last=False)
+                with self._truth_lock:
+                    self._truth[index] = truth
+                    while len(self._truth) > self.capture.truth_frames:
+                        self._truth.popitem(last=False)
             log.debug("rendered frame %s in %.2f ms", index, 1e3 * (time.perf_counter() - start))
             return image, truth
 
