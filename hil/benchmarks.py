@@ -520,7 +520,7 @@ def _service_figures(soak: dict[str, Any], fresh: dict[str, Any]) -> list[dict[s
             cpu,
             "% of a core",
             f"≤ {SERVICE_CPU_GOAL_PCT:g} % at 30 fps, an estimate on every frame",
-            baseline="the whole process with the simulator's render threads",
+            baseline="the whole process with the simulator's threads",
             baseline_value=soak.get("cpu_pct_one_core"),
             ok=None if cpu is None else cpu <= SERVICE_CPU_GOAL_PCT,
         ),
