@@ -14,24 +14,33 @@ show the old focus are counted: the frames in flight → ``[capture] latency_fra
 
 Focus table. The target is placed at each known depth z (``--depths``; on the real camera an
 operator places it and presses Enter at the terminal prompt). The focus is swept coarse over the
-whole range, then fine around the sharpest setting; every sample is a frame exposed entirely
-after the focus move completed (latency + 2 frames after the VISCA Completion); the focus cost
-(2) is taken exactly as the core takes it (active contour normals →
-:func:`dffd.core.focus.focus_cost`) and the sharpest counts is the vertex of a parabola fitted
-to the costs around the minimum. The thin lens gives ``v = f z / (z − f)``; the pairs (counts,
-v), sorted and checked monotone, are written as a lens TOML file (PCHIP-interpolated by
-:class:`dffd.core.lens.Lens`).
+whole range, then fine around the sharpest setting, :data:`FRAMES_PER_SETTING` frames at each
+fine setting (averaged; their spread gives the cost's σ); every sample is a frame exposed
+entirely after the focus move completed (latency + 2 frames after the VISCA Completion). The
+focus cost is taken exactly as the estimator takes it — active contour normals and the
+configured ``[estimators] focus_measure`` (:func:`dffd.core.focus.frame_cost`) — so whatever bias
+the measure has on this lens is absorbed by the table, as the estimator's bursts will see it.
+The sharpest setting is the vertex of a parabola fitted on the window, symmetric about the
+vertex, where the cost is parabolic (:func:`dffd.calibrate_fit.fit_vertex`). The thin lens gives
+each depth its focus power ``P = 1/z``; a smooth model ``P(counts)`` (a polynomial whose degree is
+chosen by leave-one-out, outliers dropped: :func:`dffd.calibrate_fit.fit_focus_model`) is fitted
+to the depths; the vertices are then refitted in ``v`` through that model (as the estimator fits
+its bursts) and the model refitted. The file written tabulates ``v = 1/(1/f − P)`` of the model
+densely over the calibrated range (PCHIP-interpolated by :class:`dffd.core.lens.Lens`); the
+model's residual at each depth is printed.
 
 Lab procedure (real camera):
 
 1. Mount the camera, set the zoom used in service (``[lens] zoom_counts`` or the lens file's),
    light the target evenly; the target must be the only high-contrast blob in view, centred.
-2. ``dffd calibrate --config /etc/dffd/dffd.toml --depths 1,1.5,2,3,4.5,7,10,20
-   --out /etc/dffd/lenses/NEW.toml`` — the config names ``camera.port``, ``capture.device`` (and
-   its size/fps/fourcc) and ``lens.file`` (its focal length and pixel pitch are reused: f is
-   fixed at a fixed zoom).
+2. ``dffd calibrate --config /etc/dffd/dffd.toml --out /etc/dffd/lenses/NEW.toml`` (the
+   default depths: :data:`DEFAULT_DEPTHS_M`, denser where the table curves and at long range,
+   where a micrometre of v is a decimetre of depth) — the config names ``camera.port``,
+   ``capture.device`` (and its size/fps/fourcc) and ``lens.file`` (its focal length, pixel
+   pitch and f-number are reused: f is fixed at a fixed zoom).
 3. At each prompt place the target at that depth along the optical axis (measure from the
-   front principal plane; ±5 mm matters at 1 m) and press Enter. About a minute per depth.
+   front principal plane; ±5 mm matters at 1 m) and press Enter. About a minute per depth. Depths
+   the model cannot fit are named at the end: re-measure them.
 4. Set ``[lens] file`` to the new table and ``[capture] latency_frames`` to the printed latency.
 
 Exit codes: 0 written, 1 the procedure failed (target not found, non-monotone, camera), 2 usage.
@@ -41,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import itertools
 import logging
 import math
@@ -54,17 +64,21 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from dffd.calibrate_fit import ModelFit, fit_focus_model, fit_vertex
 from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
-from dffd.core.focus import focus_cost
+from dffd.core.focus import DEFAULT_FOCUS_MEASURE, PlanConfig, frame_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
+from dffd.literals import FocusMeasure
 from drivers.sim.resources import reference_camera_file
 
 _LOGGER = logging.getLogger(__name__)
 
 
-DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 3.0, 4.5, 7.0, 10.0, 20.0)
+# Default depths (m): about even in v (the focus cam's curvature) and denser at long range, where
+# one micrometre of v is ~0.1 m of depth and the table must be measured, not interpolated.
+DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.5, 5.5, 7.0, 8.5, 10.0, 12.0, 14.0, 17.0, 20.0)
 # The contour must fit the tracker's radius range with room to spare: at most this fraction of
 # TrackerConfig.max_radius_px (its normals search ±search_px beyond the edge, and a target that
 # nearly fills the frame leaves the background too little area for the threshold), at least
@@ -73,8 +87,23 @@ MAX_RADIUS_FRACTION = 0.9
 MIN_RADIUS_MARGIN = 1.5
 DEPTH_STEP_M = 0.1  # a default depth the target is too large at moves out to a multiple of this
 COARSE_POINTS = 33  # focus settings of the coarse sweep over the whole range
-FINE_POINTS = 17  # … of the fine sweep around the coarse minimum (± two coarse steps)
-FIT_HALF_WIDTH = 3  # points either side of the minimum used for the vertex fit
+# The fine sweep: FINE_POINTS settings over ± FINE_SPAN_STEPS coarse steps around the coarse
+# minimum — wide enough to hold the estimator's burst bracket (± 3 px of blur, ~90 µm of v) on
+# both sides of the vertex even at 20 m, where ~70 counts are a micrometre of v.
+FINE_POINTS = 41
+FINE_SPAN_STEPS = 7
+# Frames averaged at each fine setting: a single frame's vertex scatters by ~1 µm of v (0.1 m of
+# depth at 10 m); four cut that in half and their spread gives the cost's σ.
+FRAMES_PER_SETTING = 4
+FIT_HALF_WIDTH = 3  # points either side of the minimum used by vertex() (the coarse peak)
+TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smooth model: exact)
+# Half-width of the vertex window of the refit in v, in px of blur radius: where the cost is
+# still parabolic and symmetric. Wider windows lean: with the aberrated lens's PSF (a caustic on
+# one side of focus) the vertex moves 0.6 / 0.9 / 2.3 / 6.7 µm at 10 m for 1 / 1.5 / 2 / 3 px
+# (edge_variance); on the reference lens the table error is 2-4 mm for any of them.
+VERTEX_WINDOW_BLUR_PX = 1.0
+REFIT_PASSES = 2  # vertex refits in v through the latest model (the second moves < 0.1 µm)
+MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselves
 # Image change: the largest change of an 8×8 block mean between two frames (a refocused edge
 # changes its blocks by tens of DN; averaging cuts the pixel noise 8×). "Changed" means more than
 # CHANGE_THRESHOLD_DN and NOISE_FACTOR × the largest such change between frames at rest.
@@ -105,6 +134,51 @@ class DepthPoint:
     counts: int
     v_mm: float
     cost_min: float
+    counts_exact: float = math.nan  # the vertex before rounding (NaN: ``counts``)
+    sigma_counts: float = math.nan  # its σ from the fit (NaN: unknown)
+    # the fine sweep: settings (counts), mean cost, σ of the mean (for the refit in v)
+    sweep: tuple[tuple[float, float, float], ...] = ()
+
+    @property
+    def at(self) -> float:
+        """The sharpest counts, unrounded."""
+        return self.counts if math.isnan(self.counts_exact) else self.counts_exact
+
+
+@dataclass(frozen=True, slots=True)
+class TableFit:
+    """The calibrated table: the depth points, the smooth model and its residuals."""
+
+    points: tuple[DepthPoint, ...]
+    fit: ModelFit | None  # None with fewer than MIN_MODEL_DEPTHS depths
+    lens: Lens
+
+    def residual_lines(self) -> list[str]:
+        """One line per depth: the sharpest counts, v and the model's residual (for the CLI)."""
+        lines = []
+        for i, p in enumerate(self.points):
+            line = f"z = {p.z_m:6.2f} m  sharpest counts {p.at:9.1f}"
+            if not math.isnan(p.sigma_counts):
+                line += f" ± {p.sigma_counts:5.1f}"
+            line += f"  v = {p.v_mm:.6f} mm"
+            if self.fit is not None:
+                line += (
+                    f"  model residual {self.fit.residual_v_um[i]:+6.3f} µm of v, "
+                    f"{self.fit.residual_depth_mm[i]:+7.1f} mm of depth"
+                )
+                if not self.fit.used[i]:
+                    line += "  REJECTED (outlier: re-measure this depth)"
+            lines.append(line)
+        if self.fit is not None:
+            m = self.fit
+            lines.append(
+                f"focus model: P(counts) polynomial of degree {m.model.degree}"
+                f"{' + smoothing spline' if m.model.spline is not None else ''} (leave-one-out), "
+                f"{sum(m.used)} of {len(m.used)} depths; residual rms "
+                f"{m.rms_v_um:.3f} µm of v, {m.rms_depth_mm:.1f} mm of depth; leave-one-out "
+                f"prediction rms {m.loo_rms_v_um:.3f} µm of v"
+            )
+        return lines
 
 
 class Rig(Protocol):
@@ -165,7 +239,9 @@ def run(args: argparse.Namespace) -> int:
         if len(depths) < 2 or any(unusable):
             print(f"dffd calibrate: {'; '.join(u for u in unusable if u)}", file=sys.stderr)
             return EXIT_USAGE
-        return asyncio.run(_calibrate_and_report(sim_rig, depths, args))
+        # the measure the daemon would use with its default configuration
+        measure = DffdConfig().estimators.focus_measure
+        return asyncio.run(_calibrate_and_report(sim_rig, depths, args, measure))
     try:
         config = load_config(args.config)
         rig = LabRig(config)
@@ -175,8 +251,11 @@ def run(args: argparse.Namespace) -> int:
     return asyncio.run(_lab(rig, depths, args))
 
 
-async def calibrate(rig: Rig, depths: list[float]) -> tuple[list[DepthPoint], int]:
-    """The procedure on any rig: the capture latency, then the sharpest setting per depth."""
+async def calibrate(
+    rig: Rig, depths: list[float], measure: FocusMeasure = DEFAULT_FOCUS_MEASURE
+) -> tuple[list[DepthPoint], int]:
+    """The procedure on any rig: the capture latency, then the sharpest setting per depth
+    (with the estimator's focus ``measure``)."""
     await rig.place_target(depths[0])
     latency = await measure_latency(rig)
     settle = latency + SETTLE_EXTRA_FRAMES
@@ -184,32 +263,88 @@ async def calibrate(rig: Rig, depths: list[float]) -> tuple[list[DepthPoint], in
     for i, z in enumerate(depths):
         if i:
             await rig.place_target(z)
-        points.append(await sharpest(rig, z, settle))
-        _LOGGER.info("z = %.3f m: sharpest at %d counts", z, points[-1].counts)
+        points.append(await sharpest(rig, z, settle, measure))
+        _LOGGER.info("z = %.3f m: sharpest at %.1f counts", z, points[-1].at)
     return points, latency
 
 
-async def sharpest(rig: Rig, z_m: float, settle_frames: int) -> DepthPoint:
+async def sharpest(
+    rig: Rig,
+    z_m: float,
+    settle_frames: int,
+    measure: FocusMeasure = DEFAULT_FOCUS_MEASURE,
+    frames: int = FRAMES_PER_SETTING,
+) -> DepthPoint:
     """Sweep the focus with the target at ``z_m``; the sharpest counts and its v."""
     lo, hi = rig.focus_range
     coarse = np.linspace(lo, hi, COARSE_POINTS)
-    costs, sizes = await _costs(rig, coarse, settle_frames)
+    costs, _, sizes = await _costs(rig, coarse, settle_frames, measure, 1)
     if not np.isfinite(costs).any():
         raise CalibrationError(f"target not found at {z_m} m at any focus; " + _why_not(sizes))
     best = float(coarse[int(np.nanargmin(costs))])
-    step = (hi - lo) / (COARSE_POINTS - 1)
-    fine = np.linspace(max(lo, best - 2 * step), min(hi, best + 2 * step), FINE_POINTS)
-    fine_costs, fine_sizes = await _costs(rig, fine, settle_frames)
+    span = FINE_SPAN_STEPS * (hi - lo) / (COARSE_POINTS - 1)
+    fine = np.linspace(max(lo, best - span), min(hi, best + span), FINE_POINTS)
+    fine_costs, fine_sigma, fine_sizes = await _costs(rig, fine, settle_frames, measure, frames)
     ok = np.isfinite(fine_costs)
-    if ok.sum() < 3:
+    found = fit_vertex(fine, fine_costs, fine_sigma) if ok.sum() >= 3 else None
+    if found is None:
         raise CalibrationError(
             f"target not measurable at {z_m} m (a contour at {ok.sum()} of {FINE_POINTS} "
-            "settings around the sharpest); " + _why_not(sizes + fine_sizes)
+            "settings around the sharpest, or no minimum among them); "
+            + _why_not(sizes + fine_sizes)
         )
-    counts = round(vertex(fine[ok], fine_costs[ok]))
     f = rig.focal_length_mm
     z = z_m * MM_PER_M
-    return DepthPoint(z_m, counts, f * z / (z - f), float(np.nanmin(fine_costs)))
+    sweep = tuple(
+        (float(c), float(g), float(s))
+        for c, g, s in zip(fine[ok], fine_costs[ok], fine_sigma[ok], strict=True)
+    )
+    return DepthPoint(
+        z_m, round(found.x), f * z / (z - f), float(np.nanmin(fine_costs)),
+        found.x, found.sigma, sweep,
+    )  # fmt: skip
+
+
+def fit_table(
+    name: str,
+    rig: Rig,
+    points: list[DepthPoint],
+    f_number: float | None = None,
+    window_blur_px: float = VERTEX_WINDOW_BLUR_PX,
+) -> TableFit:
+    """The calibrated lens: a smooth focus model through the depth points (vertices refitted in
+    v through it, on ± ``window_blur_px`` of blur), tabulated densely; with fewer than
+    MIN_MODEL_DEPTHS depths, the points themselves."""
+    f, pitch = rig.focal_length_mm, rig.pixel_pitch_mm
+    if len(points) < MIN_MODEL_DEPTHS:
+        lens = lens_from_points(name, f, pitch, points)
+        return TableFit(tuple(points), None, _with_f_number(lens, f_number, rig.zoom_counts))
+    _check_monotone(points)
+    span = (float(rig.focus_range[0]), float(rig.focus_range[1]))
+    model = _fit_model(points, f, span)
+    # Second pass: each vertex refitted in v through the model (the estimator fits its bursts
+    # in v; a parabola in counts leans where the cam curves), then the model refitted.
+    n_f = f_number if f_number is not None else PlanConfig().default_f_number
+    per_px = pitch * n_f * 2.0 / f  # mm of v per px of blur radius, per mm of v (plan_burst)
+    refit = points
+    for _ in range(REFIT_PASSES):
+        refit = [_refit_in_v(p, model.model, window_blur_px * per_px * p.v_mm) for p in points]
+        model = _fit_model(refit, f, span)
+    lo = min(p.at for p in refit)
+    hi = max(p.at for p in refit)
+    grid = np.unique(np.r_[np.arange(math.ceil(lo), hi, TABLE_STEP_COUNTS), math.floor(hi)])
+    grid = grid[(grid >= lo) & (grid <= hi)].astype(int)
+    v = model.model.v_mm(grid)
+    if not (np.all(np.diff(v) > 0) or np.all(np.diff(v) < 0)):
+        raise CalibrationError(
+            "the fitted focus model is not monotone over the calibrated range; check the "
+            "depths printed with large residuals and re-measure them"
+        )
+    lens = Lens(
+        name, f, pitch, tuple(int(c) for c in grid), tuple(float(x) for x in v),
+        f_number=f_number, zoom_counts=rig.zoom_counts,
+    )  # fmt: skip
+    return TableFit(tuple(refit), model, lens)
 
 
 async def measure_latency(rig: Rig) -> int:
@@ -242,32 +377,33 @@ def lens_from_points(
     name: str, focal_length_mm: float, pixel_pitch_mm: float, points: list[DepthPoint]
 ) -> Lens:
     """A :class:`Lens` from the sweep results; raises CalibrationError if not monotone."""
+    _check_monotone(points)
     pts = sorted(points, key=lambda p: p.counts)
     counts = [p.counts for p in pts]
     v = [p.v_mm for p in pts]
-    steps = [b - a for a, b in itertools.pairwise(v)]
-    monotone = all(d > 0 for d in steps) or all(d < 0 for d in steps)
-    if len(set(counts)) != len(counts) or not monotone:
-        raise CalibrationError(
-            "the sharpest settings are not monotone in depth "
-            f"(counts {counts}, v {[round(x, 4) for x in v]}); use depths further apart"
-        )
     return Lens(name, focal_length_mm, pixel_pitch_mm, tuple(counts), tuple(v))
 
 
-def lens_toml(lens: Lens, zoom_counts: int | None, latency_frames: int) -> str:
-    """The lens calibration file (lens TOML format, as ``dffd/defaults/lenses/*.toml``)."""
+def lens_toml(
+    lens: Lens, zoom_counts: int | None, latency_frames: int, notes: list[str] | None = None
+) -> str:
+    """The lens calibration file (lens TOML format, as ``dffd/defaults/lenses/*.toml``);
+    ``notes`` become comment lines (the fit's residuals)."""
     rows = "\n".join(
-        f"    [{c}, {v:.6f}]," for c, v in zip(lens.focus_counts, lens.focus_v_mm, strict=True)
+        f"    [{c}, {v:.7f}]," for c, v in zip(lens.focus_counts, lens.focus_v_mm, strict=True)
     )
     zoom = f"zoom_counts = {zoom_counts}\n" if zoom_counts is not None else ""
+    f_number = f"f_number = {lens.f_number!r}\n" if lens.f_number is not None else ""
+    comments = "".join(f"# {line}\n" for line in notes or [])
     return (
         "# Focus calibration written by `dffd calibrate` (docs/design.md §3).\n"
         f"# Measured capture latency: {latency_frames} frame(s) -> [capture] latency_frames.\n"
+        f"{comments}"
         "[lens]\n"
         f'name = "{lens.name}"\n'
         f"focal_length_mm = {lens.focal_length_mm}\n"
         f"pixel_pitch_mm = {lens.pixel_pitch_mm}\n"
+        f"{f_number}"
         f"{zoom}"
         f"focus_table = [\n{rows}\n]\n"
     )
@@ -302,6 +438,7 @@ class SimRig:
         lens = Lens.from_meta(_lens_meta(optics, self.config.zoom_counts))
         self.focal_length_mm = lens.focal_length_mm
         self.pixel_pitch_mm = lens.pixel_pitch_mm
+        self.f_number: float | None = optics.f_number(self.config.zoom_counts)
         self.zoom_counts: int | None = self.config.zoom_counts
         self.focus_range = (
             int(self.config.lens.focus_far_counts),
@@ -425,6 +562,7 @@ class LabRig:
         self.profile = profile_for(config.camera.model)
         self.focal_length_mm = lens.focal_length_mm
         self.pixel_pitch_mm = lens.pixel_pitch_mm
+        self.f_number = lens.f_number
         self.zoom_counts = (
             config.lens.zoom_counts if config.lens.zoom_counts is not None else lens.zoom_counts
         )
@@ -514,17 +652,21 @@ class LabRig:
 
 
 # -- private helpers --------------------------------------------------------------------------
-async def _calibrate_and_report(rig: Rig, depths: list[float], args: argparse.Namespace) -> int:
+async def _calibrate_and_report(
+    rig: Rig, depths: list[float], args: argparse.Namespace, measure: FocusMeasure
+) -> int:
     try:
-        points, latency = await calibrate(rig, depths)
-        lens = lens_from_points(args.name, rig.focal_length_mm, rig.pixel_pitch_mm, points)
+        points, latency = await calibrate(rig, depths, measure)
+        table = fit_table(args.name, rig, points, getattr(rig, "f_number", None))
     except CalibrationError as exc:
         print(f"dffd calibrate: {exc}", file=sys.stderr)
         return EXIT_FAILURE
-    for p in points:
-        print(f"z = {p.z_m:6.2f} m  sharpest counts {p.counts:6d}  v = {p.v_mm:.6f} mm")
+    lines = table.residual_lines()
+    print(f"focus measure: {measure} ([estimators] focus_measure)")
+    print("\n".join(lines))
     print(f"capture latency: {latency} frame(s) in flight")
-    text = lens_toml(lens, rig.zoom_counts, latency)
+    notes = [f"Focus measure: {measure}.", *lines]
+    text = lens_toml(table.lens, rig.zoom_counts, latency, notes)
     if args.out is not None:
         args.out.write_text(text, encoding="utf-8")
         print(f"lens table written to {args.out}")
@@ -539,7 +681,9 @@ async def _lab(rig: LabRig, depths: list[float], args: argparse.Namespace) -> in
 
     try:
         async with rig:
-            return await _calibrate_and_report(rig, depths, args)
+            return await _calibrate_and_report(
+                rig, depths, args, rig.config.estimators.focus_measure
+            )
     except (ViscaError, FrameSourceError, TimeoutError, OSError) as exc:
         print(
             f"dffd calibrate: camera or video device failed: {exc}; check camera.port, "
@@ -567,27 +711,90 @@ async def _ask_operator(text: str) -> None:
 
 
 async def _costs(
-    rig: Rig, settings: npt.NDArray[np.float64], settle: int
-) -> tuple[npt.NDArray[Any], list[float]]:
-    """The focus cost at each setting (NaN: no contour), and the radii (px) of the blobs
-    found where the contour could not start (to say why)."""
+    rig: Rig,
+    settings: npt.NDArray[np.float64],
+    settle: int,
+    measure: FocusMeasure,
+    frames: int,
+) -> tuple[npt.NDArray[Any], npt.NDArray[Any], list[float]]:
+    """The focus cost at each setting, averaged over ``frames`` frames (NaN: no contour), the σ
+    of that mean, and the radii (px) of the blobs found where the contour could not start."""
     out = np.full(len(settings), np.nan)
+    sigma = np.full(len(settings), np.nan)
     tracker = ContourTracker(TrackerConfig())
     refused: list[float] = []
+    t = 0.0
     for i, c in enumerate(settings):
-        gray = await rig.frame_at(round(float(c)), settle)
-        t = float(i)
-        poly = find_target(gray)
-        if poly is None:
-            continue
-        if not tracker.start(gray, poly, t):
-            refused.append(_radius_px(poly))
-            continue
-        obs = tracker.update(gray, t, "translation")
-        cost = focus_cost(obs.peak_sq)
-        if cost is not None:
-            out[i] = cost[0]
-    return out, refused
+        values: list[float] = []
+        errors: list[float] = []
+        for k in range(frames):
+            gray = (
+                await rig.frame_at(round(float(c)), settle)
+                if k == 0
+                else (await rig.next_frame())[0]
+            )
+            t += 1.0
+            poly = find_target(gray)
+            if poly is None:
+                continue
+            if not tracker.start(gray, poly, t):
+                refused.append(_radius_px(poly))
+                continue
+            cost = frame_cost(tracker.update(gray, t, "translation"), measure)
+            if cost is not None:
+                values.append(cost[0])
+                errors.append(cost[1])
+        if values:
+            out[i] = float(np.mean(values))
+            # the larger of the frames' own σ and their spread, for the mean
+            spread = float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+            sigma[i] = max(spread, float(np.mean(errors))) / math.sqrt(len(values))
+    return out, sigma, refused
+
+
+def _check_monotone(points: list[DepthPoint]) -> None:
+    pts = sorted(points, key=lambda p: p.at)
+    counts = [p.counts for p in pts]
+    v = [p.v_mm for p in pts]
+    steps = [b - a for a, b in itertools.pairwise(v)]
+    monotone = all(d > 0 for d in steps) or all(d < 0 for d in steps)
+    if len(set(counts)) != len(counts) or not monotone:
+        raise CalibrationError(
+            "the sharpest settings are not monotone in depth "
+            f"(counts {counts}, v {[round(x, 4) for x in v]}); use depths further apart"
+        )
+
+
+def _fit_model(points: list[DepthPoint], f: float, span: tuple[float, float]) -> ModelFit:
+    counts = np.array([p.at for p in points])
+    sigma = np.array([p.sigma_counts for p in points])
+    # a point without a σ (a rig that gave none) weighs as the median of the others
+    fallback = float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else 1.0
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, fallback)
+    z = np.array([p.z_m for p in points])
+    return fit_focus_model(counts, z, sigma, f, span)
+
+
+def _refit_in_v(point: DepthPoint, model: Any, half_width_mm: float) -> DepthPoint:
+    """``point``'s vertex refitted with the sweep's settings mapped to v through ``model``, on
+    a window of ``half_width_mm`` either side (the estimator's burst bracket)."""
+    if len(point.sweep) < 3:
+        return point
+    c, g, s = (np.array(col) for col in zip(*point.sweep, strict=True))
+    v = model.v_mm(c)
+    order = np.argsort(v)
+    found = fit_vertex(v[order], g[order], s[order], half_width_mm)
+    if found is None:
+        return point
+    lo, hi = float(c.min()), float(c.max())
+    at = model.counts_for_v(found.x, lo, hi)
+    slope = abs(float(np.gradient(v, c)[int(np.argmin(np.abs(c - at)))]))
+    sigma = found.sigma / slope if slope > 0 else point.sigma_counts
+    return dataclasses.replace(point, counts=round(at), counts_exact=at, sigma_counts=sigma)
+
+
+def _with_f_number(lens: Lens, f_number: float | None, zoom_counts: int | None) -> Lens:
+    return dataclasses.replace(lens, f_number=f_number, zoom_counts=zoom_counts)
 
 
 def _radius_px(poly: npt.NDArray[np.float64]) -> float:
@@ -626,7 +833,9 @@ __all__ = [
     "LabRig",
     "Rig",
     "SimRig",
+    "TableFit",
     "calibrate",
+    "fit_table",
     "lens_from_points",
     "lens_toml",
     "measure_latency",

@@ -1,36 +1,47 @@
 """The bench calibrates its lens table as the lab does (issue 11.7).
 
 Before a scenario's sessions run, the focus table the estimator is told is fitted by the code of
-``dffd calibrate --sim`` (:func:`dffd.calibrate.calibrate` on a :class:`dffd.calibrate.SimRig`
-of the session's own simulated camera: optics, lens, sensor noise and target), once per optics
-model and seed, cached under the run directory. The bench then scores on that table, and
-``report.json`` reports the calibration's own error against the simulator's true focus curve
-(``calibration`` block): the depth a calibrated setting stands for against the depth that
-setting truly focuses, over the working range.
+``dffd calibrate --sim`` (:func:`dffd.calibrate.calibrate` and :func:`dffd.calibrate.fit_table`
+on a :class:`dffd.calibrate.SimRig` of the session's own simulated camera: optics, lens, sensor
+noise and target; the lab's default depths; the estimator's focus measure), once per optics
+model and seed, cached under the run directory (the file name carries a key of the camera, the
+measure and the procedure, so a changed camera or procedure is calibrated anew). The bench then
+scores on that table, and ``report.json`` reports the calibration's own error against the
+simulator's true focus curve (``calibration`` block): the depth a calibrated setting stands for
+against the depth that setting truly focuses, over the working range; and the fit's residuals.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dffd.calibrate import SimRig, calibrate, lens_from_points, lens_toml
+from dffd.calibrate import (
+    DEFAULT_DEPTHS_M,
+    FRAMES_PER_SETTING,
+    VERTEX_WINDOW_BLUR_PX,
+    SimRig,
+    calibrate,
+    fit_table,
+    lens_toml,
+)
 from dffd.core.lens import Lens
+from dffd.literals import FocusMeasure
 from hil.scenario import Scenario
 from hil.simbuild import sim_camera_config, truth_lens_table
 
 logger = logging.getLogger(__name__)
 
-# Target depths of the calibration sweeps (m): the bench's working range (1.5–12 m) with the
-# lab procedure's spacing (docs/design.md, dffd calibrate), plus one beyond it so that the
-# table's far end is measured, not extrapolated.
-CALIBRATION_DEPTHS_M = (1.5, 2.0, 3.0, 4.5, 7.0, 10.0, 14.0)
+# Bump when the procedure changes what it writes: cached tables of another version are refitted.
+PROCEDURE_VERSION = 2
 # Depths (m) at which the calibrated table is scored against the true focus curve.
 SCORE_DEPTHS_M = tuple(float(z) for z in np.geomspace(1.5, 12.0, 25))
 
@@ -43,31 +54,70 @@ class Calibration:
     report: dict[str, Any]
 
 
-def calibrated_lens(scenario: Scenario, seed: int, cache_dir: Path) -> Calibration:
+def calibrated_lens(
+    scenario: Scenario, seed: int, cache_dir: Path, depths_m: tuple[float, ...] | None = None
+) -> Calibration:
     """The table ``dffd calibrate --sim`` fits on this scenario's camera with ``seed`` (cached
     in ``cache_dir`` as ``<optics>-s<seed>.toml`` and ``.json``)."""
     _case, trajectory = scenario.expand()[0]
     config, _ = sim_camera_config(scenario, trajectory, seed)
+    measure = _focus_measure(scenario)
     name = f"{config.optics.model}-s{seed}"
-    toml_path, json_path = cache_dir / f"{name}.toml", cache_dir / f"{name}.json"
+    wanted = DEFAULT_DEPTHS_M if depths_m is None else depths_m
+    key = _cache_key(config, measure, wanted)
+    toml_path, json_path = cache_dir / f"{name}-{key}.toml", cache_dir / f"{name}-{key}.json"
     if toml_path.exists() and json_path.exists():
         return Calibration(toml_path, json.loads(json_path.read_text("utf-8")))
     cache_dir.mkdir(parents=True, exist_ok=True)
     rig = SimRig(config)
-    points, latency = asyncio.run(calibrate(rig, list(CALIBRATION_DEPTHS_M)))
-    lens = lens_from_points(f"calibrated-{name}", rig.focal_length_mm, rig.pixel_pitch_mm, points)
-    toml_path.write_text(lens_toml(lens, rig.zoom_counts, latency), "utf-8")
+    depths = rig.usable_depths(wanted)
+    started = time.monotonic()
+    points, latency = asyncio.run(calibrate(rig, depths, measure))
+    table = fit_table(f"calibrated-{name}", rig, points, rig.f_number)
+    wall_s = time.monotonic() - started
+    lines = table.residual_lines()
+    toml_path.write_text(lens_toml(table.lens, rig.zoom_counts, latency, lines), "utf-8")
     truth = Lens.from_toml(truth_lens_table(config))
-    report = calibration_error(lens, truth) | {
+    fit = table.fit
+    report = calibration_error(table.lens, truth) | {
         "optics": config.optics.model,
         "seed": seed,
-        "depths_m": list(CALIBRATION_DEPTHS_M),
+        "focus_measure": measure,
+        "depths_m": depths,
+        "frames_per_setting": FRAMES_PER_SETTING,
+        "vertex_window_blur_px": VERTEX_WINDOW_BLUR_PX,
         "latency_frames": latency,
+        "wall_s": round(wall_s, 1),
+        "fit": None
+        if fit is None
+        else {
+            "degree": fit.model.degree,
+            "spline": fit.model.spline is not None,
+            "residual_v_rms_um": fit.rms_v_um,
+            "residual_depth_rms_mm": fit.rms_depth_mm,
+            "loo_v_rms_um": fit.loo_rms_v_um,
+            "rejected_depths_m": [z for z, ok in zip(depths, fit.used, strict=True) if not ok],
+        },
         "table": str(toml_path),
     }
     json_path.write_text(json.dumps(report, indent=2) + "\n", "utf-8")
     logger.info("calibrated %s: depth error rms %.4f m", name, report["depth_err_rms_m"])
     return Calibration(toml_path, report)
+
+
+def _focus_measure(scenario: Scenario) -> FocusMeasure:
+    """The focus measure the scenario's estimator uses (the calibration must use the same)."""
+    from hil.lockstep import daemon_config, pipeline_config
+
+    return pipeline_config(scenario, daemon_config()).focus_measure
+
+
+def _cache_key(config: Any, measure: str, depths: tuple[float, ...]) -> str:
+    """Eight hex digits of the camera (without its trajectory), the measure and the procedure."""
+    camera = config.model_dump(mode="json")
+    camera.get("world", {}).pop("trajectory", None)
+    text = json.dumps([camera, measure, PROCEDURE_VERSION, depths], sort_keys=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:8]
 
 
 def calibration_error(calibrated: Lens, truth: Lens) -> dict[str, Any]:

@@ -80,12 +80,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="experiment override: scheduler.KEY=V, estimator.KEY=V (dffd dataclass fields) or "
         "camera.SECTION.KEY=V (simulator config); recorded in report.json",
     )
-    run.add_argument(
+    lens_table = run.add_mutually_exclusive_group()
+    lens_table.add_argument(
         "--calibrate",
         action="store_true",
-        help="fast mode: tell the estimator a lens table fitted by `dffd calibrate --sim` on the "
-        "session's camera (as the lab does) instead of the simulator's own table; report.json "
-        "gives its error (docs/estimation.md §10)",
+        help="fast mode (the default): tell the estimator the lens table `dffd calibrate --sim` "
+        "fits on the session's camera, as the lab does; report.json gives its error "
+        "(docs/estimation.md §10)",
+    )
+    lens_table.add_argument(
+        "--simulator-table",
+        action="store_true",
+        help="diagnosis: score on the simulator's own (true) lens table, not a calibrated one",
+    )
+    run.add_argument(
+        "--calibration-depths",
+        default=None,
+        metavar="Z1,Z2,...",
+        help="target depths (m) of the calibration (default: dffd calibrate's, where the "
+        "simulated target fits)",
     )
     run.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     run.add_argument("--no-baselines", action="store_true", help="skip the ArUco/full-sweep passes")
@@ -226,6 +239,17 @@ def _run(args: argparse.Namespace) -> int:
             "error: the lab mode needs both --camera serial:PORT and --video DEV", file=sys.stderr
         )
         return EXIT_USAGE
+    depths = None
+    if args.calibration_depths is not None:
+        try:
+            depths = tuple(float(z) for z in args.calibration_depths.split(",") if z.strip())
+        except ValueError:
+            print(
+                f"error: --calibration-depths {args.calibration_depths!r} is not a list of "
+                "numbers (metres, comma-separated)",
+                file=sys.stderr,
+            )
+            return EXIT_USAGE
     from hil.runner import RunOptions, run_scenario
 
     options = RunOptions(
@@ -239,6 +263,7 @@ def _run(args: argparse.Namespace) -> int:
         camera=args.camera,
         video=args.video,
         truth_csv=args.truth,
-        calibrate=args.calibrate,
+        calibrate=not args.simulator_table,
+        calibration_depths=depths,
     )
     return run_scenario(scenario, options)

@@ -48,11 +48,11 @@ class RunOptions:
     camera: str | None = None
     video: str | None = None
     truth_csv: Path | None = None
-    # the estimator's lens table: fitted by `dffd calibrate --sim` on the session's camera (as
-    # the lab does, hil/calibration.py), or (default) the simulator's ground truth / packaged
-    # table. Opt-in while the calibration sweep's own vertex noise (~1 µm of v: 0.1-0.2 m at
-    # 10 m) dominates every scenario's error (docs/estimation.md §10).
-    calibrate: bool = False
+    # the estimator's lens table: (default) fitted by `dffd calibrate --sim` on the session's
+    # camera, as the lab does (hil/calibration.py, docs/estimation.md §10); False: the
+    # simulator's ground truth / packaged table (diagnosis)
+    calibrate: bool = True
+    calibration_depths: tuple[float, ...] | None = None  # None: dffd calibrate's defaults
 
 
 def run_scenario(scenario: Scenario, options: RunOptions) -> int:
@@ -110,7 +110,9 @@ def run_fast(scenario: Scenario, options: RunOptions) -> list[RunResult]:
     calibrations: dict[int, Calibration] = {}
     if options.calibrate and options.camera is None:
         for seed in scenario.seeds:
-            calibrations[seed] = calibrated_lens(scenario, seed, options.out_dir / "calibration")
+            calibrations[seed] = calibrated_lens(
+                scenario, seed, options.out_dir / "calibration", options.calibration_depths
+            )
     with _progress(options.progress, total, scenario.name) as advance:
         for case, traj, seed in sessions:
             calib = calibrations.get(seed)

@@ -97,12 +97,17 @@ def test_sim_runs_with_its_own_defaults(tmp_path: Path, capsys: pytest.CaptureFi
     out = tmp_path / "lens.toml"
     assert run(parser.parse_args(["--sim", "--out", str(out)])) == 0
     printed = capsys.readouterr().out
-    assert "depths: 1.2, 1.5, 2, 3, 4.5, 7, 10, 20 m" in printed
+    assert "depths: 1.2, 1.5, 2, 2.5, 3, 3.5, 4.5, 5.5, 7, 8.5, 10, 12, 14, 17, 20 m" in printed
+    # the fit's residuals are stated, per depth and overall
+    assert printed.count("model residual") == 15
+    assert "focus model: P(counts) polynomial of degree" in printed
     lens = Lens.from_toml(out)
-    assert len(lens.focus_counts) == 8
-    for z in (1.5, 3.0, 7.0):
+    assert lens.f_number == pytest.approx(2.9)  # the rig's, for the estimator's burst plan
+    # a smooth model tabulated densely over the calibrated range, within 1 % of the truth
+    assert len(lens.focus_counts) > 50
+    for z in (1.5, 3.0, 7.0, 12.0):
         got = lens.depth_from_v(lens.v_from_counts(TRUTH.counts_for_depth(z)))
-        assert got == pytest.approx(z, rel=0.03)
+        assert got == pytest.approx(z, rel=0.01)
 
 
 async def test_a_target_too_large_for_the_tracker_is_named_as_such() -> None:

@@ -47,6 +47,10 @@ sweep_rate_ratio_min = 5.0
 """
 
 
+# A calibration on five depths over the working range (15 by default: ~45 s).
+QUICK_CALIBRATION = ["--calibration-depths", "1.5,2.5,4,7,13"]
+
+
 @pytest.fixture(scope="module")
 def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     base = tmp_path_factory.mktemp("hil")
@@ -55,10 +59,10 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     out = base / "out"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        # --calibrate: the estimator is told the table dffd calibrate --sim fits (at 2 m its
-        # error is a few mm, docs/estimation.md §10)
+        # the estimator is told the table dffd calibrate --sim fits (the default; at 2 m its
+        # error is a few mm, docs/estimation.md §10), on five depths to keep the test short
         argv = ["run", str(scenario), "--fast", "--out", str(out), "--no-progress"]
-        code = hil_main([*argv, "--record", "--calibrate"])
+        code = hil_main([*argv, "--record", *QUICK_CALIBRATION])
     (base / "stdout.txt").write_text(printed.getvalue(), encoding="utf-8")
     assert code == 0
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
@@ -264,7 +268,7 @@ def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> N
     assert 'name = "sim-aberrated"' in session.lens_path.read_text(encoding="utf-8")
     out = tmp_path / "out"
     argv = ["run", str(scenario), "--fast", "--out", str(out), "--no-progress", "--no-plots"]
-    argv += ["--no-baselines", "--optics", "aberrated", "--seeds", "5,6"]
+    argv += ["--no-baselines", "--optics", "aberrated", "--seeds", "5,6", *QUICK_CALIBRATION]
     assert hil_main(argv) == 0
     report = load_report(out)
     assert report["optics"] == "aberrated"
