@@ -273,9 +273,11 @@ async def sharpest(
     z_m: float,
     settle_frames: int,
     measure: FocusMeasure = DEFAULT_FOCUS_MEASURE,
-    frames: int = FRAMES_PER_SETTING,
+    frames: int | None = None,
 ) -> DepthPoint:
-    """Sweep the focus with the target at ``z_m``; the sharpest counts and its v."""
+    """Sweep the focus with the target at ``z_m``; the sharpest counts and its v (``frames``
+    averaged per fine setting; None: FRAMES_PER_SETTING)."""
+    frames = FRAMES_PER_SETTING if frames is None else frames
     lo, hi = rig.focus_range
     coarse = np.linspace(lo, hi, COARSE_POINTS)
     costs, _, sizes = await _costs(rig, coarse, settle_frames, measure, 1)

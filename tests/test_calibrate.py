@@ -89,9 +89,16 @@ def test_cli_writes_a_loadable_lens_file(tmp_path: Path) -> None:
     assert run(parser.parse_args(["--depths", "2,5"])) == 2  # neither --sim nor --config
 
 
-def test_sim_runs_with_its_own_defaults(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+# The default procedure's 15 depths take ~20 s here (one frame a setting) and up to 3x that when
+# the machine is shared; the module default (60 s) would fail it on load alone.
+@pytest.mark.timeout(180)
+def test_sim_runs_with_its_own_defaults(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     # `dffd calibrate --sim` with no --depths: the standard set, moved out where the simulated
-    # 35.76 mm target is larger than the tracker takes (1.0 m: 222 px in radius).
+    # 35.76 mm target is larger than the tracker takes (1.0 m: 222 px in radius). One frame a
+    # setting instead of four keeps the test short (~40 s with the defaults).
+    monkeypatch.setattr("dffd.calibrate.FRAMES_PER_SETTING", 1)
     parser = argparse.ArgumentParser()
     configure_calibrate(parser)
     out = tmp_path / "lens.toml"
