@@ -64,7 +64,7 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from dffd.calibrate_fit import ModelFit, fit_focus_model, fit_vertex
+from dffd.calibrate_fit import FocusModel, ModelFit, fit_focus_model, fit_vertex
 from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import DEFAULT_FOCUS_MEASURE, PlanConfig, frame_cost
@@ -97,11 +97,12 @@ FINE_SPAN_STEPS = 7
 FRAMES_PER_SETTING = 4
 FIT_HALF_WIDTH = 3  # points either side of the minimum used by vertex() (the coarse peak)
 TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smooth model: exact)
-# Half-width of the vertex window of the refit in v, in px of blur radius: where the cost is
-# still parabolic and symmetric. Wider windows lean: with the aberrated lens's PSF (a caustic on
-# one side of focus) the vertex moves 0.6 / 0.9 / 2.3 / 6.7 µm at 10 m for 1 / 1.5 / 2 / 3 px
-# (edge_variance); on the reference lens the table error is 2-4 mm for any of them.
-VERTEX_WINDOW_BLUR_PX = 1.0
+# Half-width of the vertex window of the refit in v, in px of blur radius: the estimator's own
+# burst bracket (PlanConfig.outer_blur_px, 3 px), so that where a measure leans on a lens (the
+# aberrated PSF: 5-15 µm of v at ±3 px) the table absorbs the lean the bursts will see. Measured
+# (paper-circle seed 1, 60 s, peak_gradient): reference 1 px -> table 14 mm rms, bench 28 mm;
+# 3 px -> table 3.6 mm, bench 8.8 mm (true table: 8.0 mm).
+VERTEX_WINDOW_BLUR_PX = PlanConfig().outer_blur_px
 REFIT_PASSES = 2  # vertex refits in v through the latest model (the second moves < 0.1 µm)
 MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselves
 # Image change: the largest change of an 8×8 block mean between two frames (a refocused edge
@@ -332,16 +333,7 @@ def fit_table(
     for _ in range(REFIT_PASSES):
         refit = [_refit_in_v(p, model.model, window_blur_px * per_px * p.v_mm) for p in points]
         model = _fit_model(refit, f, span)
-    lo = min(p.at for p in refit)
-    hi = max(p.at for p in refit)
-    grid = np.unique(np.r_[np.arange(math.ceil(lo), hi, TABLE_STEP_COUNTS), math.floor(hi)])
-    grid = grid[(grid >= lo) & (grid <= hi)].astype(int)
-    v = model.model.v_mm(grid)
-    if not (np.all(np.diff(v) > 0) or np.all(np.diff(v) < 0)):
-        raise CalibrationError(
-            "the fitted focus model is not monotone over the calibrated range; check the "
-            "depths printed with large residuals and re-measure them"
-        )
+    grid, v = _tabulate(model.model, (min(p.at for p in refit), max(p.at for p in refit)), span)
     lens = Lens(
         name, f, pitch, tuple(int(c) for c in grid), tuple(float(x) for x in v),
         f_number=f_number, zoom_counts=rig.zoom_counts,
@@ -793,6 +785,34 @@ def _refit_in_v(point: DepthPoint, model: Any, half_width_mm: float) -> DepthPoi
     slope = abs(float(np.gradient(v, c)[int(np.argmin(np.abs(c - at)))]))
     sigma = found.sigma / slope if slope > 0 else point.sigma_counts
     return dataclasses.replace(point, counts=round(at), counts_exact=at, sigma_counts=sigma)
+
+
+def _tabulate(
+    model: FocusModel, measured: tuple[float, float], focus_range: tuple[float, float]
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+    """The model every TABLE_STEP_COUNTS over the whole focus range: the estimator's brackets
+    reach ~90 µm of v beyond the target (past 20 m towards infinity at 10 m), and a table that
+    stops at the last calibrated depth shifts them off-centre (paper-circle: 8 -> 157 mm ss RMS
+    with the true table cut to 1.2-20 m). Beyond the measured depths the model extrapolates
+    while it stays monotone and in front of infinity (P > 0)."""
+    lo, hi = sorted(focus_range)
+    grid = np.unique(np.r_[np.arange(math.ceil(lo), hi, TABLE_STEP_COUNTS), math.floor(hi)])
+    power = model.power_dpt(grid)
+    v = model.v_mm(grid)
+    inside = (grid >= measured[0]) & (grid <= measured[1])
+    rising = np.diff(v) > 0
+    first, last = int(np.flatnonzero(inside)[0]), int(np.flatnonzero(inside)[-1])
+    if not (rising[first:last].all() or not rising[first:last].any()):
+        raise CalibrationError(
+            "the fitted focus model is not monotone over the calibrated range; check the "
+            "depths printed with large residuals and re-measure them"
+        )
+    step_up = bool(rising[first]) if last > first else True
+    while first > 0 and bool(rising[first - 1]) == step_up and power[first - 1] > 0:
+        first -= 1
+    while last < len(grid) - 1 and bool(rising[last]) == step_up and power[last + 1] > 0:
+        last += 1
+    return grid[first : last + 1].astype(np.int64), v[first : last + 1]
 
 
 def _with_f_number(lens: Lens, f_number: float | None, zoom_counts: int | None) -> Lens:

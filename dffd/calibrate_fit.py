@@ -64,13 +64,15 @@ class VertexFit:
 @dataclass(frozen=True, slots=True, eq=False)
 class FocusModel:
     """Focus power P(u) = Σ coef_k u^k + s(u) (dioptres) of the normalised counts u ∈ [0, 1]:
-    a low-order polynomial and a smoothing spline of its residuals (None: the polynomial)."""
+    a low-order polynomial and a smoothing spline of its residuals (None: the polynomial), held
+    at its end values beyond the depths it was fitted to (the polynomial extrapolates)."""
 
     coef: tuple[float, ...]  # lowest degree first
     counts_lo: float
     counts_hi: float
     focal_length_mm: float
     spline: BSpline | None = None
+    spline_u: tuple[float, float] = (0.0, 1.0)  # the range of u the spline was fitted over
 
     @property
     def degree(self) -> int:
@@ -84,7 +86,7 @@ class FocusModel:
         )
         p = np.polynomial.polynomial.polyval(u, self.coef)
         if self.spline is not None:
-            p = p + self.spline(u)
+            p = p + self.spline(np.clip(u, *self.spline_u))
         return np.asarray(p, dtype=np.float64)
 
     def v_mm(self, counts: npt.ArrayLike) -> FloatArray:
@@ -249,7 +251,10 @@ def _with_spline(model: FocusModel, u: FloatArray, p: FloatArray, s: FloatArray)
     order = np.argsort(u)
     r = p - model.power_dpt(u * (model.counts_hi - model.counts_lo) + model.counts_lo)
     spline = make_smoothing_spline(u[order], r[order], w=1.0 / s[order] ** 2)
-    return FocusModel(model.coef, model.counts_lo, model.counts_hi, model.focal_length_mm, spline)
+    return FocusModel(
+        model.coef, model.counts_lo, model.counts_hi, model.focal_length_mm, spline,
+        (float(u.min()), float(u.max())),
+    )  # fmt: skip
 
 
 def _window(
