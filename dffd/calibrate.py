@@ -98,10 +98,10 @@ FRAMES_PER_SETTING = 4
 FIT_HALF_WIDTH = 3  # points either side of the minimum used by vertex() (the coarse peak)
 TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smooth model: exact)
 # Half-width of the vertex window of the refit in v, in px of blur radius: the estimator's own
-# burst bracket (PlanConfig.outer_blur_px, 3 px), so that where a measure leans on a lens (the
-# aberrated PSF: 5-15 µm of v at ±3 px) the table absorbs the lean the bursts will see. Measured
-# (paper-circle seed 1, 60 s, peak_gradient): reference 1 px -> table 14 mm rms, bench 28 mm;
-# 3 px -> table 3.6 mm, bench 8.8 mm (true table: 8.0 mm).
+# burst bracket (PlanConfig.outer_blur_px, 3 px), where a measure's lean on a lens is the one its
+# bursts fit. Chosen on the reference optics (paper-circle seed 1, 60 s, peak_gradient): 1 px ->
+# table 14 mm rms, bench 28 mm; 3 px -> 3.6 mm, 8.8 mm (true table: 8.0 mm). On the aberrated
+# optics the bench is the same with 1 or 3 px (docs/estimation.md §10).
 VERTEX_WINDOW_BLUR_PX = PlanConfig().outer_blur_px
 REFIT_PASSES = 2  # vertex refits in v through the latest model (the second moves < 0.1 µm)
 MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselves
