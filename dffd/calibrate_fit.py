@@ -205,13 +205,15 @@ def fit_focus_model(
         used[worst] = False
     v_meas = 1.0 / (1.0 / focal_length_mm - power / MM_PER_M)
     v_model = model.v_mm(counts)
-    z_model = 1.0 / model.power_dpt(counts)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a depth at infinity: P = 0
+        z_model = 1.0 / model.power_dpt(counts)
+        dz_mm = np.nan_to_num((z_model - z_m) * MM_PER_M)
     dv_dp = v_meas**2 / MM_PER_M  # mm per dioptre
     return ModelFit(
         model,
         tuple(bool(b) for b in used),
         tuple(float(x) for x in (v_meas - v_model) * 1e3),
-        tuple(float(x) for x in (z_model - z_m) * MM_PER_M),
+        tuple(float(x) for x in dz_mm),
         float(loo * float(np.median(dv_dp)) * 1e3),
     )
 
