@@ -493,10 +493,12 @@ def format_table(report: dict[str, Any]) -> str:
             continue
         w = b["angular_speed"]
         lines.append(
-            "3D {:<4} position {} mm rms, velocity {} mm/s, acceleration {} mm/s²; "
-            "ω bias {} rms {} rad/s".format(
+            "3D {:<4} position {} mm rms ({} along the line of sight, {} lateral), velocity {} "
+            "mm/s, acceleration {} mm/s²; ω bias {} rms {} rad/s".format(
                 name,
                 _num(b["position_rms_m"] * 1e3, "{:.1f}"),
+                _num(_milli(b.get("position_los_rms_m")), "{:.1f}"),
+                _num(_milli(b.get("position_lateral_rms_m")), "{:.1f}"),
                 _num(b["velocity_rms_m_s"] * 1e3, "{:.1f}"),
                 _num(b["acceleration_rms_m_s2"] * 1e3, "{:.0f}"),
                 _num(w["bias_rad_s"], "{:+.4f}"),
@@ -857,6 +859,10 @@ def _mm(x: float | None) -> str:
 
 def _num(x: float | None, fmt: str) -> str:
     return "-" if x is None else fmt.format(x)
+
+
+def _milli(x: float | None) -> float | None:
+    return None if x is None else x * 1e3
 
 
 def _clean(obj: Any) -> Any:

@@ -1,7 +1,9 @@
 """Scoring of the 3D trackers against the simulator's 3D truth: ``report.json``'s ``tracking_3d``.
 
 Per filter (``mmae``, ``imm``, ``cv``): 3D RMS of the position, velocity and acceleration
-errors (Euclidean norm, world frame) and the angular speed's bias and RMS, over the frames after
+errors (Euclidean norm, world frame) — the position's also split into its component along the
+line of sight from the pan/tilt centre (where a size or depth bias lands) and the lateral rest
+— and the angular speed's bias and RMS, over the frames after
 the scenario's settling time; and a plot of the multiple-model filters' model probabilities
 over time. Frames and signs: ``docs/tracking3d.md``.
 """
@@ -46,6 +48,8 @@ def truth_3d(truth: FrameTruth) -> Truth3D:
 class _Series:
     t: list[float] = field(default_factory=list)
     pos: list[Vec3] = field(default_factory=list)
+    los: list[float] = field(default_factory=list)  # position error along the line of sight
+    lateral: list[float] = field(default_factory=list)  # |the rest of it|
     vel: list[Vec3] = field(default_factory=list)
     acc: list[Vec3] = field(default_factory=list)
     omega: list[float] = field(default_factory=list)
@@ -65,7 +69,11 @@ class Track3DScore:
         for name, est in estimates.items():
             s = self._series.setdefault(name, _Series())
             s.t.append(t_s)
-            s.pos.append(_sub(est.position_m, truth.position_m))
+            err = _sub(est.position_m, truth.position_m)
+            s.pos.append(err)
+            along, across = _split_los(err, truth.position_m)
+            s.los.append(along)
+            s.lateral.append(across)
             s.vel.append(_sub(est.velocity_m_s, truth.velocity_m_s))
             s.acc.append(_sub(est.acceleration_m_s2, truth.acceleration_m_s2))
             s.omega.append(est.angular_speed_rad_s - truth.angular_speed_rad_s)
@@ -73,9 +81,9 @@ class Track3DScore:
             s.probabilities.append(dict(est.model_probabilities))
 
     def block(self) -> dict[str, Any]:
-        """``{filter: {n, position_rms_m, velocity_rms_m_s, acceleration_rms_m_s2,
-        angular_speed: {bias_rad_s, rms_rad_s, truth_mean_rad_s}}}`` over the steady state
-        (None: no frames)."""
+        """``{filter: {n, position_rms_m, position_los_rms_m, position_lateral_rms_m,
+        velocity_rms_m_s, acceleration_rms_m_s2, angular_speed: {bias_rad_s, rms_rad_s,
+        truth_mean_rad_s}}}`` over the steady state (None: no frames)."""
         out: dict[str, Any] = {}
         for name, s in self._series.items():
             sel = np.asarray(s.t) >= self.settle_s
@@ -87,6 +95,8 @@ class Track3DScore:
             out[name] = {
                 "n": n,
                 "position_rms_m": _rms3(s.pos, sel),
+                "position_los_rms_m": _rms1(s.los, sel),
+                "position_lateral_rms_m": _rms1(s.lateral, sel),
                 "velocity_rms_m_s": _rms3(s.vel, sel),
                 "acceleration_rms_m_s2": _rms3(s.acc, sel),
                 "angular_speed": {
@@ -136,6 +146,8 @@ def pooled_block(scores: Sequence[Track3DScore]) -> dict[str, Any]:
             dst = pooled._series.setdefault(name, _Series())
             dst.t += [s.t[i] for i in keep]
             dst.pos += [s.pos[i] for i in keep]
+            dst.los += [s.los[i] for i in keep]
+            dst.lateral += [s.lateral[i] for i in keep]
             dst.vel += [s.vel[i] for i in keep]
             dst.acc += [s.acc[i] for i in keep]
             dst.omega += [s.omega[i] for i in keep]
@@ -146,6 +158,22 @@ def pooled_block(scores: Sequence[Track3DScore]) -> dict[str, Any]:
 
 def _sub(a: Vec3, b: Vec3) -> Vec3:
     return a[0] - b[0], a[1] - b[1], a[2] - b[2]
+
+
+def _split_los(err: Vec3, truth: Vec3) -> tuple[float, float]:
+    """``err``'s component along the line of sight to ``truth`` (from the pan/tilt centre,
+    the world origin) and the norm of the rest."""
+    e, p = np.asarray(err), np.asarray(truth)
+    norm = float(np.linalg.norm(p))
+    if not norm > 0.0:
+        return 0.0, float(np.linalg.norm(e))
+    along = float(e @ p) / norm
+    return along, float(np.linalg.norm(e - along * p / norm))
+
+
+def _rms1(values: list[float], sel: np.ndarray[Any, np.dtype[np.bool_]]) -> float:
+    v = np.asarray(values, dtype=np.float64)[sel]
+    return float(math.sqrt(float(np.mean(v * v))))
 
 
 def _rms3(errors: list[Vec3], sel: np.ndarray[Any, np.dtype[np.bool_]]) -> float:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -44,6 +45,9 @@ def test_block_is_steady_state_rms_and_bias_per_filter(tmp_path: Path) -> None:
     mm = block["mmae"]
     assert mm["n"] == 8
     assert mm["position_rms_m"] == pytest.approx(0.03)
+    # the x error split along the line of sight to (1, 0, 5) and across it
+    assert mm["position_los_rms_m"] == pytest.approx(0.03 / math.sqrt(26))
+    assert mm["position_lateral_rms_m"] == pytest.approx(0.03 * 5 / math.sqrt(26))
     assert mm["velocity_rms_m_s"] == pytest.approx(0.03)
     assert mm["acceleration_rms_m_s2"] == pytest.approx(0.0)
     assert mm["angular_speed"] == {
