@@ -25,9 +25,9 @@ vertex, where the cost is parabolic (:func:`dffd.calibrate_fit.fit_vertex`). The
 each depth its focus power ``P = 1/z``; a smooth model ``P(counts)`` (a polynomial whose degree is
 chosen by leave-one-out, outliers dropped: :func:`dffd.calibrate_fit.fit_focus_model`) is fitted
 to the depths; the vertices are then refitted in ``v`` through that model (as the estimator fits
-its bursts) and the model refitted. The file written tabulates ``v = 1/(1/f − P)`` of the model
-densely over the calibrated range (PCHIP-interpolated by :class:`dffd.core.lens.Lens`); the
-model's residual at each depth is printed.
+its bursts) and the model refitted (:func:`dffd.calibrate_fit.fit_table`). The file written
+tabulates ``v = 1/(1/f − P)`` of the model densely over the calibrated range (PCHIP-interpolated
+by :class:`dffd.core.lens.Lens`); the model's residual at each depth is printed.
 
 Lab procedure (real camera):
 
@@ -50,24 +50,21 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import dataclasses
-import itertools
 import logging
 import math
 import sys
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from dffd.calibrate_fit import FocusModel, ModelFit, fit_focus_model, fit_vertex
+from dffd.calibrate_fit import CalibrationError, DepthPoint, FocusOptics, fit_table, fit_vertex
 from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
-from dffd.core.focus import DEFAULT_FOCUS_MEASURE, PlanConfig, frame_cost
+from dffd.core.focus import DEFAULT_FOCUS_MEASURE, frame_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.literals import FocusMeasure
@@ -96,15 +93,6 @@ FINE_SPAN_STEPS = 7
 # depth at 10 m); four cut that in half and their spread gives the cost's σ.
 FRAMES_PER_SETTING = 4
 FIT_HALF_WIDTH = 3  # points either side of the minimum used by vertex() (the coarse peak)
-TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smooth model: exact)
-# Half-width of the vertex window of the refit in v, in px of blur radius: the estimator's own
-# burst bracket (PlanConfig.outer_blur_px, 3 px), where a measure's lean on a lens is the one its
-# bursts fit. Chosen on the reference optics (paper-circle seed 1, 60 s, peak_gradient): 1 px ->
-# table 14 mm rms, bench 28 mm; 3 px -> 3.6 mm, 8.8 mm (true table: 8.0 mm). On the aberrated
-# optics the bench is the same with 1 or 3 px (docs/estimation.md §10).
-VERTEX_WINDOW_BLUR_PX = PlanConfig().outer_blur_px
-REFIT_PASSES = 2  # vertex refits in v through the latest model (the second moves < 0.1 µm)
-MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselves
 # Image change: the largest change of an 8×8 block mean between two frames (a refocused edge
 # changes its blocks by tens of DN; averaging cuts the pixel noise 8×). "Changed" means more than
 # CHANGE_THRESHOLD_DN and NOISE_FACTOR × the largest such change between frames at rest.
@@ -123,72 +111,8 @@ FRAME_TIMEOUT_S = 2.0
 Image = npt.NDArray[np.uint8]
 
 
-class CalibrationError(RuntimeError):
-    """The sweep could not find a sharp setting (target not found, flat cost, …)."""
-
-
-@dataclass(frozen=True, slots=True)
-class DepthPoint:
-    """The sharpest focus setting found for one known depth."""
-
-    z_m: float
-    counts: int
-    v_mm: float
-    cost_min: float
-    counts_exact: float = math.nan  # the vertex before rounding (NaN: ``counts``)
-    sigma_counts: float = math.nan  # its σ from the fit (NaN: unknown)
-    # the fine sweep: settings (counts), mean cost, σ of the mean (for the refit in v)
-    sweep: tuple[tuple[float, float, float], ...] = ()
-
-    @property
-    def at(self) -> float:
-        """The sharpest counts, unrounded."""
-        return self.counts if math.isnan(self.counts_exact) else self.counts_exact
-
-
-@dataclass(frozen=True, slots=True)
-class TableFit:
-    """The calibrated table: the depth points, the smooth model and its residuals."""
-
-    points: tuple[DepthPoint, ...]
-    fit: ModelFit | None  # None with fewer than MIN_MODEL_DEPTHS depths
-    lens: Lens
-
-    def residual_lines(self) -> list[str]:
-        """One line per depth: the sharpest counts, v and the model's residual (for the CLI)."""
-        lines = []
-        for i, p in enumerate(self.points):
-            line = f"z = {p.z_m:6.2f} m  sharpest counts {p.at:9.1f}"
-            if not math.isnan(p.sigma_counts):
-                line += f" ± {p.sigma_counts:5.1f}"
-            line += f"  v = {p.v_mm:.6f} mm"
-            if self.fit is not None:
-                line += (
-                    f"  model residual {self.fit.residual_v_um[i]:+6.3f} µm of v, "
-                    f"{self.fit.residual_depth_mm[i]:+7.1f} mm of depth"
-                )
-                if not self.fit.used[i]:
-                    line += "  REJECTED (outlier: re-measure this depth)"
-            lines.append(line)
-        if self.fit is not None:
-            m = self.fit
-            lines.append(
-                f"focus model: P(counts) polynomial of degree {m.model.degree}"
-                f"{' + smoothing spline' if m.model.spline is not None else ''} (leave-one-out), "
-                f"{sum(m.used)} of {len(m.used)} depths; residual rms "
-                f"{m.rms_v_um:.3f} µm of v, {m.rms_depth_mm:.1f} mm of depth; leave-one-out "
-                f"prediction rms {m.loo_rms_v_um:.3f} µm of v"
-            )
-        return lines
-
-
-class Rig(Protocol):
+class Rig(FocusOptics, Protocol):
     """A camera with a controllable focus and a frame source, and a way to place the target."""
-
-    focal_length_mm: float
-    pixel_pitch_mm: float
-    zoom_counts: int | None
-    focus_range: tuple[int, int]  # far end … near end, counts
 
     async def place_target(self, z_m: float) -> None:
         """Have the (static) target at ``z_m`` metres on the optical axis."""
@@ -308,44 +232,6 @@ async def sharpest(
     )  # fmt: skip
 
 
-def fit_table(
-    name: str,
-    rig: Rig,
-    points: list[DepthPoint],
-    f_number: float | None = None,
-    window_blur_px: float = VERTEX_WINDOW_BLUR_PX,
-) -> TableFit:
-    """The calibrated lens: a smooth focus model through the depth points (vertices refitted in
-    v through it, on ± ``window_blur_px`` of blur), tabulated densely; with fewer than
-    MIN_MODEL_DEPTHS depths, the points themselves."""
-    f, pitch = rig.focal_length_mm, rig.pixel_pitch_mm
-    if len(points) < MIN_MODEL_DEPTHS:
-        lens = lens_from_points(name, f, pitch, points)
-        return TableFit(tuple(points), None, _with_f_number(lens, f_number, rig.zoom_counts))
-    _check_monotone(points)
-    span = (float(rig.focus_range[0]), float(rig.focus_range[1]))
-    # The model is anchored at P = 0 at the far end of the focus range (focus at infinity, the
-    # VISCA camera's datasheet, docs/design.md §6): the estimator's brackets at 10 m reach far
-    # past the last calibrated depth, and there an unanchored model's cam ripple is free
-    # (aberrated optics, seed 1: a true 100 m read as 44 m; bench 771 -> 483 mm ss RMS on 60 s,
-    # true table 481 mm; reference unchanged).
-    model = _fit_model(points, f, span)
-    # Second pass: each vertex refitted in v through the model (the estimator fits its bursts
-    # in v; a parabola in counts leans where the cam curves), then the model refitted.
-    n_f = f_number if f_number is not None else PlanConfig().default_f_number
-    per_px = pitch * n_f * 2.0 / f  # mm of v per px of blur radius, per mm of v (plan_burst)
-    refit = points
-    for _ in range(REFIT_PASSES):
-        refit = [_refit_in_v(p, model.model, window_blur_px * per_px * p.v_mm) for p in points]
-        model = _fit_model(refit, f, span)
-    grid, v = _tabulate(model.model, (min(p.at for p in refit), max(p.at for p in refit)), span)
-    lens = Lens(
-        name, f, pitch, tuple(int(c) for c in grid), tuple(float(x) for x in v),
-        f_number=f_number, zoom_counts=rig.zoom_counts,
-    )  # fmt: skip
-    return TableFit(tuple(refit), model, lens)
-
-
 async def measure_latency(rig: Rig) -> int:
     """Frames delivered after a focus step before one shows it (the frames in flight)."""
     lo, hi = rig.focus_range
@@ -370,17 +256,6 @@ async def measure_latency(rig: Rig) -> int:
         f"the image never changed after a focus step (threshold {threshold:.2f} DN); is the "
         "target in view and the camera in manual focus?"
     )
-
-
-def lens_from_points(
-    name: str, focal_length_mm: float, pixel_pitch_mm: float, points: list[DepthPoint]
-) -> Lens:
-    """A :class:`Lens` from the sweep results; raises CalibrationError if not monotone."""
-    _check_monotone(points)
-    pts = sorted(points, key=lambda p: p.counts)
-    counts = [p.counts for p in pts]
-    v = [p.v_mm for p in pts]
-    return Lens(name, focal_length_mm, pixel_pitch_mm, tuple(counts), tuple(v))
 
 
 def lens_toml(
@@ -751,89 +626,6 @@ async def _costs(
     return out, sigma, refused
 
 
-def _check_monotone(points: list[DepthPoint]) -> None:
-    pts = sorted(points, key=lambda p: p.at)
-    counts = [p.counts for p in pts]
-    v = [p.v_mm for p in pts]
-    steps = [b - a for a, b in itertools.pairwise(v)]
-    monotone = all(d > 0 for d in steps) or all(d < 0 for d in steps)
-    if len(set(counts)) != len(counts) or not monotone:
-        raise CalibrationError(
-            "the sharpest settings are not monotone in depth "
-            f"(counts {counts}, v {[round(x, 4) for x in v]}); use depths further apart"
-        )
-
-
-def _fit_model(points: list[DepthPoint], f: float, span: tuple[float, float]) -> ModelFit:
-    """The focus model through the points and the infinity anchor (the far end of the focus
-    range focuses at infinity: the camera's datasheet); the fit's per-depth figures are the
-    points' (the anchor's dropped)."""
-    counts = np.array([*(p.at for p in points), span[0]])
-    sigma = np.array([p.sigma_counts for p in points])
-    # a point without a σ (a rig that gave none) weighs as the median of the others
-    fallback = float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else 1.0
-    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, fallback)
-    sigma = np.r_[sigma, float(np.median(sigma))]
-    z = np.array([*(p.z_m for p in points), math.inf])
-    fit = fit_focus_model(counts, z, sigma, f, span)
-    return dataclasses.replace(
-        fit,
-        used=fit.used[:-1],
-        residual_v_um=fit.residual_v_um[:-1],
-        residual_depth_mm=fit.residual_depth_mm[:-1],
-    )
-
-
-def _refit_in_v(point: DepthPoint, model: Any, half_width_mm: float) -> DepthPoint:
-    """``point``'s vertex refitted with the sweep's settings mapped to v through ``model``, on
-    a window of ``half_width_mm`` either side (the estimator's burst bracket)."""
-    if len(point.sweep) < 3:
-        return point
-    c, g, s = (np.array(col) for col in zip(*point.sweep, strict=True))
-    v = model.v_mm(c)
-    order = np.argsort(v)
-    found = fit_vertex(v[order], g[order], s[order], half_width_mm)
-    if found is None:
-        return point
-    lo, hi = float(c.min()), float(c.max())
-    at = model.counts_for_v(found.x, lo, hi)
-    slope = abs(float(np.gradient(v, c)[int(np.argmin(np.abs(c - at)))]))
-    sigma = found.sigma / slope if slope > 0 else point.sigma_counts
-    return dataclasses.replace(point, counts=round(at), counts_exact=at, sigma_counts=sigma)
-
-
-def _tabulate(
-    model: FocusModel, measured: tuple[float, float], focus_range: tuple[float, float]
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
-    """The model every TABLE_STEP_COUNTS over the whole focus range: the estimator's brackets
-    reach ~90 µm of v beyond the target (past 20 m towards infinity at 10 m), and a table that
-    stops at the last calibrated depth shifts them off-centre (paper-circle: 8 -> 157 mm ss RMS
-    with the true table cut to 1.2-20 m). Beyond the measured depths the model extrapolates
-    while it stays monotone and in front of infinity (P > 0)."""
-    lo, hi = sorted(focus_range)
-    grid = np.unique(np.r_[np.arange(math.ceil(lo), hi, TABLE_STEP_COUNTS), math.floor(hi)])
-    power = model.power_dpt(grid)
-    v = model.v_mm(grid)
-    inside = (grid >= measured[0]) & (grid <= measured[1])
-    rising = np.diff(v) > 0
-    first, last = int(np.flatnonzero(inside)[0]), int(np.flatnonzero(inside)[-1])
-    if not (rising[first:last].all() or not rising[first:last].any()):
-        raise CalibrationError(
-            "the fitted focus model is not monotone over the calibrated range; check the "
-            "depths printed with large residuals and re-measure them"
-        )
-    step_up = bool(rising[first]) if last > first else True
-    while first > 0 and bool(rising[first - 1]) == step_up and power[first - 1] > 0:
-        first -= 1
-    while last < len(grid) - 1 and bool(rising[last]) == step_up and power[last + 1] > 0:
-        last += 1
-    return grid[first : last + 1].astype(np.int64), v[first : last + 1]
-
-
-def _with_f_number(lens: Lens, f_number: float | None, zoom_counts: int | None) -> Lens:
-    return dataclasses.replace(lens, f_number=f_number, zoom_counts=zoom_counts)
-
-
 def _radius_px(poly: npt.NDArray[np.float64]) -> float:
     """The size measure r = sqrt(tr Σ) of a boundary polygon, in pixels."""
     pts = np.asarray(poly, dtype=np.float64)
@@ -865,15 +657,10 @@ def _lens_meta(optics: object, zoom_counts: int) -> dict[str, object]:
 
 
 __all__ = [
-    "CalibrationError",
-    "DepthPoint",
     "LabRig",
     "Rig",
     "SimRig",
-    "TableFit",
     "calibrate",
-    "fit_table",
-    "lens_from_points",
     "lens_toml",
     "measure_latency",
     "run",

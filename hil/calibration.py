@@ -1,7 +1,7 @@
 """The bench calibrates its lens table as the lab does (issue 11.7).
 
 Before a scenario's sessions run, the focus table the estimator is told is fitted by the code of
-``dffd calibrate --sim`` (:func:`dffd.calibrate.calibrate` and :func:`dffd.calibrate.fit_table`
+``dffd calibrate --sim`` (:func:`dffd.calibrate.calibrate` and :func:`dffd.calibrate_fit.fit_table`
 on a :class:`dffd.calibrate.SimRig` of the session's own simulated camera: optics, lens, sensor
 noise and target; the lab's default depths; the estimator's focus measure), once per optics
 model and seed, cached under the run directory (the file name carries a key of the camera, the
@@ -24,15 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from dffd.calibrate import (
-    DEFAULT_DEPTHS_M,
-    FRAMES_PER_SETTING,
-    VERTEX_WINDOW_BLUR_PX,
-    SimRig,
-    calibrate,
-    fit_table,
-    lens_toml,
-)
+from dffd.calibrate import DEFAULT_DEPTHS_M, FRAMES_PER_SETTING, SimRig, calibrate, lens_toml
+from dffd.calibrate_fit import VERTEX_WINDOW_BLUR_PX, fit_table
 from dffd.core.lens import Lens
 from dffd.literals import FocusMeasure
 from hil.scenario import Scenario

@@ -7,18 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from dffd.calibrate import (
-    CalibrationError,
-    DepthPoint,
-    LabRig,
-    SimRig,
-    calibrate,
-    lens_from_points,
-    measure_latency,
-    run,
-    sharpest,
-    vertex,
-)
+from dffd.calibrate import LabRig, SimRig, calibrate, measure_latency, run, sharpest, vertex
+from dffd.calibrate_fit import CalibrationError, DepthPoint, lens_from_points
 from dffd.cli.arguments import configure_calibrate
 from dffd.config import load_config
 from dffd.core.lens import Lens
