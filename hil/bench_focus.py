@@ -7,6 +7,12 @@ burst planner) are centred at v + δ for δ across [−h, h]; every frame is ren
 contour and scored by each focus measure; the three costs give the vertex (fit_burst). Reported per
 optics model and measure: the slope of (v̂ − v_c) against (v − v_c) (least squares over δ and
 repeats) and the vertex noise (std of v̂ over noise repeats at each δ, pooled), in units of h.
+
+``fixed_point_h`` is where the closed loop settles: the true offset δ* at which the mean fitted
+offset crosses zero (linear interpolation between the two δ around the crossing). A burst whose
+vertex lands on its own bracket centre is re-planned there, so a static target's estimate sits
+−δ* h from the true sharp setting in v (docs/estimation.md §13): a lean that only a calibration
+using this same three-point fit can absorb.
 """
 
 from __future__ import annotations
@@ -132,6 +138,7 @@ def measure(
             if len(sel) > 1:
                 noise.append(np.var(sel, ddof=1))
         out[m] = {
+            "fixed_point_h": fixed_point(arr[:, 0], arr[:, 1]),
             "slope": float(slope),
             "intercept_h": float(icpt),
             "noise_h": float(math.sqrt(np.mean(noise))) if noise else math.nan,
@@ -139,6 +146,19 @@ def measure(
             "rejected": bad,
         }
     return out
+
+
+def fixed_point(delta: np.ndarray, x_hat: np.ndarray) -> float:
+    """True offset δ* (h) where the mean fitted offset crosses zero; NaN without a crossing."""
+    ds = np.unique(delta)
+    means = np.array([float(np.mean(x_hat[delta == d])) for d in ds])
+    for i in range(len(ds) - 1):
+        a, b = means[i], means[i + 1]
+        if a == 0.0:
+            return float(ds[i])
+        if a * b < 0.0:
+            return float(ds[i] + (ds[i + 1] - ds[i]) * a / (a - b))
+    return float(ds[-1]) if means[-1] == 0.0 else math.nan
 
 
 def main() -> None:
@@ -177,7 +197,8 @@ def main() -> None:
                 print(
                     f"{model:9s} z={z:4.1f} {m:14s} slope {v['slope']:.3f} "
                     f"icpt {v['intercept_h']:+.3f} h  noise {v['noise_h']:.4f} h  "
-                    f"maxdev {v['max_dev_h']:.3f} h  rejected {v['rejected']}",
+                    f"maxdev {v['max_dev_h']:.3f} h  fixed point {v['fixed_point_h']:+.3f} h  "
+                    f"rejected {v['rejected']}",
                     flush=True,
                 )
             print(f"  ({time.perf_counter() - t0:.1f} s)", flush=True)
