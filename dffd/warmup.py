@@ -4,8 +4,10 @@ Run once after every install or upgrade, as the user the service runs as and wit
 ``NUMBA_CACHE_DIR`` (``make setup`` does it for the development tree): the first ``dffd run``
 then loads machine code (~1-2 s) instead of compiling it (~15-40 s of CPU). Exit 0 when the
 kernels are cached, 1 when no cache directory is writable (the message says which variable to
-set). ``dffd run`` needs neither: :func:`start_background` runs this command in a separate,
-niced process while the tracker uses the kernels' NumPy twins, then swaps the compiled kernels in.
+set). ``dffd run`` needs neither: :func:`start_background` lets the tracker use the kernels'
+NumPy twins and, when the cache is not warm (:func:`dffd.cli.loading.kernels_warm`), runs this
+command in a separate, niced process, then swaps the compiled kernels in; with a warm cache it
+only loads them, in a thread of the service (~1 s of CPU, no second process).
 """
 
 from __future__ import annotations
@@ -39,8 +41,9 @@ logger = logging.getLogger(__name__)
 class BackgroundWarmup:
     """Compiles (or loads) the kernels in a separate process, then makes them run in this one."""
 
-    def __init__(self, timeout_s: float = WARMUP_PROCESS_TIMEOUT_S) -> None:
+    def __init__(self, timeout_s: float = WARMUP_PROCESS_TIMEOUT_S, *, spawn: bool = True) -> None:
         self.done = threading.Event()  # set when the compiled kernels run (or the attempt ended)
+        self.spawn = spawn  # False: the cache is warm, load the kernels here without a process
         self._timeout_s = timeout_s
         self._stopping = threading.Event()
         self._proc: subprocess.Popen[bytes] | None = None
@@ -68,7 +71,7 @@ class BackgroundWarmup:
         from dffd.core import kernel_dispatch
 
         try:
-            ok = self._warm_up_process()
+            ok = self._warm_up_process() if self.spawn else True
             if self._stopping.is_set():
                 return
             if not ok:
@@ -78,8 +81,9 @@ class BackgroundWarmup:
                 )
             kernel_dispatch.use_compiled()
             logger.info(
-                "tracker kernels: compiled ones in use %.1f s after start (NumPy twins before)",
+                "tracker kernels: compiled ones in use %.1f s after start (NumPy twins before; %s)",
                 time.monotonic() - self._t0,
+                "compiled by a warm-up process" if self.spawn else "loaded from numba's cache",
             )
         finally:
             self.done.set()
@@ -116,11 +120,13 @@ class BackgroundWarmup:
 
 
 def start_background() -> BackgroundWarmup:
-    """The kernels' NumPy twins from now on, the compiled ones once a warm-up process has them."""
+    """The kernels' NumPy twins from now on, the compiled ones once they are loaded (a warm
+    cache) or a warm-up process has compiled them (a cold one)."""
+    from dffd.cli.loading import kernels_warm
     from dffd.core import kernel_dispatch
 
     kernel_dispatch.use_numpy()
-    warm = BackgroundWarmup()
+    warm = BackgroundWarmup(spawn=not kernels_warm())
     warm.start()
     return warm
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +16,7 @@ from dffd import exitcodes
 from dffd.cli import SUBCOMMANDS, build_parser
 from dffd.cli.arguments import REPLAY_ESTIMATORS
 
+KERNELS_SOURCE = Path(__file__).resolve().parent.parent / "dffd/core/kernels.py"
 # A fresh interpreter running `dffd X --help` (imports only): well under this on a loaded machine.
 HELP_TIMEOUT_S = 30.0
 # Modules whose import takes 0.05-2 s each (asyncio and the VISCA codec ~0.05 s: `sim-camera
@@ -79,6 +82,7 @@ def test_a_first_start_says_the_kernels_compile(
 ) -> None:
     from dffd.cli.loading import kernel_cache_dirs, kernels_cached, say_if_compiling
 
+    warm = _copy_of_the_warm_cache(tmp_path / "warm")
     env = {"NUMBA_CACHE_DIR": str(tmp_path)}
     assert not kernels_cached(env)
     (cache,) = kernel_cache_dirs(env)
@@ -87,9 +91,44 @@ def test_a_first_start_says_the_kernels_compile(
     cache.mkdir()
     (cache / "kernels._kernel_irls-261.py311.nbi").write_bytes(b"")
     assert kernels_cached(env)
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "empty"))
-    say_if_compiling("run")
-    assert "compiling the tracker's kernels" in capsys.readouterr().err
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    say_if_compiling("run")  # an index file that is not this numba's for this source: not warm
+    assert "compiling the tracker's kernels" in capsys.readouterr().err
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(warm))
     say_if_compiling("run")
     assert capsys.readouterr().err == ""
+
+
+def test_the_kernels_are_warm_only_with_a_fresh_index_of_every_kernel(tmp_path: Path) -> None:
+    """What decides whether ``dffd run`` spawns the warm-up process (dffd.warmup)."""
+    from dffd.cli.loading import kernel_cache_dir, kernels_warm
+
+    importlib.import_module("dffd.core.kernels")  # loads (or compiles and caches) them
+    assert kernels_warm()
+    assert not kernels_warm({"NUMBA_CACHE_DIR": str(tmp_path / "empty")})
+    root = _copy_of_the_warm_cache(tmp_path / "copy")
+    env = {"NUMBA_CACHE_DIR": str(root)}
+    assert kernels_warm(env)
+    cache = kernel_cache_dir(env)
+    indexes = sorted(cache.glob("kernels.*.nbi"))
+    stale = indexes[0].read_bytes()
+    digest = hashlib.sha256(KERNELS_SOURCE.read_bytes()).digest()
+    assert digest in stale
+    indexes[0].write_bytes(stale.replace(digest, bytes(len(digest))))  # another source's
+    assert not kernels_warm(env)
+    indexes[0].write_bytes(stale)
+    assert kernels_warm(env)
+    for data in cache.glob(indexes[-1].name.removesuffix(".nbi") + ".*.nbc"):
+        data.unlink()  # an index without its machine code
+    assert not kernels_warm(env)
+
+
+def _copy_of_the_warm_cache(root: Path) -> Path:
+    """A NUMBA_CACHE_DIR holding a copy of the kernels' warm cache (call it before changing
+    NUMBA_CACHE_DIR: numba reads it once)."""
+    from dffd.cli.loading import kernel_cache_dir, kernel_cache_dirs
+
+    importlib.import_module("dffd.core.kernels")  # loads (or compiles and caches) them
+    (target,) = kernel_cache_dirs({"NUMBA_CACHE_DIR": str(root)})
+    shutil.copytree(kernel_cache_dir(), target)
+    return root

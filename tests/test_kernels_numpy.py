@@ -120,6 +120,37 @@ def test_a_background_warm_up_swaps_the_compiled_kernels_in() -> None:
     assert proc.stdout.strip() == "compiled"
 
 
+def test_a_warm_cache_spawns_no_warm_up_process(tmp_path: Path) -> None:
+    """With the kernels cached the service loads them in a thread; a cold cache spawns
+    ``python -m dffd.warmup`` (stopped here at once: only the decision is tested)."""
+    kernels.cache_report()  # imported above: the cache of this tree is warm
+    code = (
+        "import logging, sys\n"
+        "logging.basicConfig(level=logging.INFO, stream=sys.stdout, format='%(message)s')\n"
+        "from dffd import warmup\n"
+        "from dffd.core import kernel_dispatch as d\n"
+        "w = warmup.start_background()\n"
+        "print('spawn', w.spawn)\n"
+        "if w.spawn:\n"
+        "    w.stop()\n"
+        f"assert w.done.wait({SWAP_TIMEOUT_S}), 'no swap'\n"
+        "print(d.active())\n"
+    )
+    runs = {}
+    for name, extra in (("warm", {}), ("cold", {"NUMBA_CACHE_DIR": str(tmp_path)})):
+        env = {**os.environ, "PYTHONPATH": str(REPO), **extra}
+        proc = subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True,
+            timeout=SWAP_TIMEOUT_S + 30, check=False,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        runs[name] = proc.stdout
+    assert "spawn False" in runs["warm"]
+    assert "loaded from numba's cache" in runs["warm"]
+    assert runs["warm"].strip().endswith("compiled")
+    assert "spawn True" in runs["cold"]
+
+
 def test_the_twins_import_no_compiler() -> None:
     code = "import sys, dffd.core.contour\nprint('numba' in sys.modules)\n"
     proc = subprocess.run(
