@@ -13,6 +13,8 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
 from dffd.core.geometry import camera_point, to_world, world_rotation
+from dffd.core.kernels_track_numpy import size_update as _size_update
+from dffd.core.kernels_track_numpy import unit_update_all as _unit_update_all
 from dffd.core.motion_models import (
     STATE_DIM,
     ConstantAcceleration,
@@ -31,9 +33,7 @@ from dffd.core.tracking3d import (
     Track3DEstimate,
     Tracker3D,
     Tracker3DConfig,
-    _size_update,
     _unit_update,
-    _unit_update_all,
     cartesian_measurement,
     direction_rate_deg_s,
     imm_mix,

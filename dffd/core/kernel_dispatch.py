@@ -23,10 +23,12 @@ __all__ = ["KernelSet", "active", "current", "use_compiled", "use_numpy", "using
 
 FloatArray = npt.NDArray[np.float64]
 F32Array = npt.NDArray[np.float32]
+IntArray = npt.NDArray[np.int64]
 
 
 class KernelSet(Protocol):
-    """The four kernels a tracker's pass calls (both modules satisfy it)."""
+    """The kernels of the contour tracker's pass and of the 3D tracker's bank (both modules
+    satisfy it)."""
 
     def normals_and_box(
         self, pts: FloatArray, normals: FloatArray, /
@@ -90,6 +92,51 @@ class KernelSet(Protocol):
         /,
     ) -> None:
         """Edge second moments along the normals and their pooled focus cost."""
+
+    def track_predict(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        xs: FloatArray,
+        ps: FloatArray,
+        codes: IntArray,
+        q: FloatArray,
+        q_omega: FloatArray,
+        dt: float,
+        q_size: float,
+        xs_out: FloatArray,
+        ps_out: FloatArray,
+        /,
+    ) -> None:
+        """Every model's prediction of the 3D tracker's bank over ``dt``."""
+
+    def track_unit_update(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        xs: FloatArray,
+        ps: FloatArray,
+        m: FloatArray,
+        sigma_m: FloatArray,
+        xs_out: FloatArray,
+        ps_out: FloatArray,
+        loglik: FloatArray,
+        /,
+    ) -> int:
+        """Every model's update on a unit-size point; 1 when not positive definite."""
+
+    def track_size_update(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        xs: FloatArray,
+        ps: FloatArray,
+        size: float,
+        var: float,
+        xs_out: FloatArray,
+        ps_out: FloatArray,
+        /,
+    ) -> None:
+        """Every model's update on a measured size."""
+
+    def track_combine(
+        self, mu: FloatArray, xs: FloatArray, ps: FloatArray, codes: IntArray, out: FloatArray, /
+    ) -> None:
+        """The bank's probability-weighted estimate."""
 
 
 _active: KernelSet | None = None  # None: nothing chosen yet (the compiled kernels on first use)

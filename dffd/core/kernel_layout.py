@@ -10,9 +10,18 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "COMBINE_OMEGA",
+    "COMBINE_SIZE",
+    "COMBINE_SIZE_VAR",
+    "COMBINE_STATE",
+    "COMBINE_VAR",
     "HUBER_K_PX",
     "IRLS_ITERATIONS",
+    "MODEL_CA",
+    "MODEL_CT",
+    "MODEL_CV",
     "MOTION_CODE",
+    "N_COMBINE",
     "N_OUT",
     "N_SCRATCH",
     "OUTLIER_PX",
@@ -77,3 +86,13 @@ class Workspace:
         self.scratch = np.empty((N_SCRATCH, n))
         self.design = np.empty((n, 6))
         self.out = np.empty(N_OUT)
+
+
+# -- the 3D tracker's kernels (dffd.core.tracking3d, dffd.core.kernels_track) ----------------
+# Motion-model codes of a bank (dffd.core.motion_models): constant velocity, constant
+# acceleration, coordinated turn.
+MODEL_CV, MODEL_CA, MODEL_CT = 0, 1, 2
+# Slots of track_combine's output: the combined state's position, velocity, acceleration
+# (9), the combined turn rate, the position variances (3), the size's mean and variance.
+COMBINE_STATE, COMBINE_OMEGA, COMBINE_VAR, COMBINE_SIZE, COMBINE_SIZE_VAR = 0, 9, 10, 13, 14
+N_COMBINE = 15

@@ -8,16 +8,13 @@ float32), so results agree to rounding (~1e-12 relative; the test asserts 1e-9).
 
 from __future__ import annotations
 
-import logging
 import math
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, TypeVar, cast
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core.kernel_jit import CacheReport, cache_report
+from dffd.core.kernel_jit import jit as _jit
 from dffd.core.kernel_layout import (  # shared with the NumPy twins (kernels_numpy)
     HUBER_K_PX,
     IRLS_ITERATIONS,
@@ -46,73 +43,30 @@ from dffd.core.kernel_layout import S_W as _S_W
 from dffd.core.kernel_layout import S_WIDTH2 as _S_WIDTH2
 from dffd.core.kernel_layout import S_WNEW as _S_WNEW
 from dffd.core.kernel_layout import TINY as _TINY
+from dffd.core.kernels_track import (  # the 3D tracker's kernels, dispatched with these
+    track_combine,
+    track_predict,
+    track_size_update,
+    track_unit_update,
+)
+
+__all__ = [
+    "CacheReport",
+    "cache_report",
+    "edge_moments",
+    "fit_pass",
+    "normals_and_box",
+    "sample_maps",
+    "track_combine",
+    "track_predict",
+    "track_size_update",
+    "track_unit_update",
+]
 
 FloatArray = npt.NDArray[np.float64]
-_F = TypeVar("_F", bound=Callable[..., Any])
-
-logger = logging.getLogger(__name__)
 
 # numba types of the kernels' arrays (all C-contiguous)
 _M, _M32, _V = "float64[:, ::1]", "float32[:, ::1]", "float64[::1]"
-
-
-@dataclass(frozen=True, slots=True)
-class CacheReport:
-    """Where the kernels' machine code came from in this process."""
-
-    kernels: int  # compiled dispatchers
-    loaded: int  # loaded from the cache
-    compiled: int  # compiled now (cache miss: first run after an install or a source change)
-    uncached: int  # compiled in memory because no cache directory was writable
-    cache_dirs: tuple[str, ...]  # where the cache lives (empty when uncached)
-
-
-def cache_report() -> CacheReport:
-    """How this process got its kernels (the kernels compile when this module is imported)."""
-    loaded = sum(sum(k.stats.cache_hits.values()) for k in _KERNELS)
-    missed = sum(sum(k.stats.cache_misses.values()) for k in _KERNELS)
-    dirs = sorted({str(k.stats.cache_path) for k in _KERNELS if k.stats.cache_path})
-    return CacheReport(
-        kernels=len(_KERNELS),
-        loaded=loaded,
-        compiled=missed + len(_UNCACHED),
-        uncached=len(_UNCACHED),
-        cache_dirs=tuple(dirs),
-    )
-
-
-def _jit(signature: str) -> Callable[[_F], _F]:
-    """Compile ``fn`` now for exactly ``signature`` (no compilation on a later call).
-
-    ``cache=True`` reuses the machine code across processes (tests, daemon restarts) from
-    ``NUMBA_CACHE_DIR``, else ``__pycache__`` next to this file, else ``~/.cache``; numba raises
-    when none is writable (a read-only install without a state directory): compile in memory
-    then — it only costs start-up time (~15-20 s of CPU).
-    """
-
-    def compile_now(fn: _F) -> _F:
-        try:
-            kernel = numba.njit(cache=True, nogil=True, fastmath=False)(fn)
-        except RuntimeError as exc:
-            if not _UNCACHED:
-                logger.warning(
-                    "numba cache not writable (%s): the tracker's kernels are compiled in "
-                    "memory at every start (~15 s); set NUMBA_CACHE_DIR to a writable "
-                    "directory and run `python -m dffd.warmup` once",
-                    exc,
-                )
-            _UNCACHED.append(fn.__name__)
-            kernel = numba.njit(cache=False, nogil=True, fastmath=False)(fn)
-        kernel.compile(signature)
-        kernel.disable_compile()
-        _KERNELS.append(kernel)
-        return cast(_F, kernel)
-
-    return compile_now
-
-
-_KERNELS: list[Any] = []  # every compiled dispatcher, for cache_report()
-_UNCACHED: list[str] = []  # kernels compiled without a cache
 
 
 @_jit(f"UniTuple(float64, 4)({_M}, {_M})")

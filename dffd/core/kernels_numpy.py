@@ -41,8 +41,23 @@ from dffd.core.kernel_layout import (
     S_WIDTH2,
     TINY,
 )
+from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatched with these
+    track_combine,
+    track_predict,
+    track_size_update,
+    track_unit_update,
+)
 
-__all__ = ["edge_moments", "fit_pass", "normals_and_box", "sample_maps"]
+__all__ = [
+    "edge_moments",
+    "fit_pass",
+    "normals_and_box",
+    "sample_maps",
+    "track_combine",
+    "track_predict",
+    "track_size_update",
+    "track_unit_update",
+]
 
 FloatArray = npt.NDArray[np.float64]
 F32Array = npt.NDArray[np.float32]

@@ -35,8 +35,9 @@ The combined output is the probability-weighted mean and the spread-of-the-means
 the angular speed is the probability-weighted turn rate of the models (0 for CV, the kinematic
 ``(v × a)·u/|v_h|²`` for CA, the state for CT). Numerics: Joseph-form updates, covariances
 symmetrised after every step, the 3×3 innovation covariances inverted by cofactors, likelihoods
-in log space; the models' steps stacked in one set of NumPy calls where the shapes allow (pinned
-on a recorded run: tests/test_core_tracking3d_trace.py). Frames are documented in
+in log space; every model of the bank predicted, updated and combined in one compiled kernel call
+each (:mod:`dffd.core.kernels_track`, with NumPy twins while numba compiles; pinned on a recorded
+run: tests/test_core_tracking3d_trace.py). Frames are documented in
 ``docs/tracking3d.md``.
 """
 
@@ -50,6 +51,19 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core import kernel_dispatch
+from dffd.core.kernel_layout import (
+    COMBINE_OMEGA,
+    COMBINE_SIZE,
+    COMBINE_SIZE_VAR,
+    COMBINE_STATE,
+    COMBINE_VAR,
+    MODEL_CA,
+    MODEL_CT,
+    MODEL_CV,
+    N_COMBINE,
+)
+from dffd.core.kernels_track_numpy import predict_models
 from dffd.core.motion_models import (
     ACC,
     OMEGA,
@@ -337,10 +351,14 @@ class Tracker3D:
         self._t: float | None = None
         self._size: tuple[float, float] | None = None  # (R̂, var) of the last size track
         self._last: Track3DEstimate | None = None  # the last step's output
-        # Stacked (n, d, d) transition and noise matrices of _predict, reused every step (the
-        # size row and column of F stay those of the identity).
-        self._fq = (np.zeros((n, TRACK_DIM, TRACK_DIM)), np.zeros((n, TRACK_DIM, TRACK_DIM)))
-        self._fq[0][:, SIZE, SIZE] = 1.0
+        # The bank's models by kernel code (dffd.core.kernels_track), or None when a model is
+        # not one of the three the kernels know (then NumPy, model by model).
+        self._codes = _model_codes(self.models)
+        self._q = np.array([getattr(m, "q", 0.0) for m in self.models], dtype=np.float64)
+        self._q_omega = np.array(
+            [getattr(m, "q_omega", 0.0) for m in self.models], dtype=np.float64
+        )
+        self._combined = np.empty(N_COMBINE)
 
     @classmethod
     def of_kind(cls, kind: TrackerKind, config: Tracker3DConfig | None = None) -> Tracker3D:
@@ -420,15 +438,25 @@ class Tracker3D:
             self._start_size(unit[0], size)
             return self.estimate()
         self._advance(t)
+        impl = kernel_dispatch.current()
         if size is not None:
-            self._x, self._p = _size_update(self._x, self._p, size[0], size[1])
+            xs, ps = np.empty_like(self._x), np.empty_like(self._p)
+            impl.track_size_update(self._x, self._p, size[0], size[1], xs, ps)
+            self._x, self._p = xs, ps
         if unit is not None:
-            self._x, self._p, loglik = _unit_update_all(self._x, self._p, unit[0], unit[1])
+            xs, ps = np.empty_like(self._x), np.empty_like(self._p)
+            loglik = np.empty(len(self.models))
+            m, sigma_m = np.ascontiguousarray(unit[0]), np.ascontiguousarray(unit[1])
+            if impl.track_unit_update(self._x, self._p, m, sigma_m, xs, ps, loglik) != 0:
+                raise np.linalg.LinAlgError(
+                    f"innovation covariance is not positive definite (unit point {unit!r})"
+                )
+            self._x, self._p = xs, ps
             self._update_probabilities(loglik)
+        combined = self._combine()
         if self._size is not None:
-            mu = self._mu
-            self._size = float(mu @ self._x[:, SIZE]), float(mu @ self._p[:, SIZE, SIZE])
-        return self.estimate()
+            self._size = combined[COMBINE_SIZE], combined[COMBINE_SIZE_VAR]
+        return self._estimate_of(combined)
 
     def extrapolate(self, t: float) -> Track3DEstimate | None:
         """The last combined estimate carried to ``t`` at constant acceleration, without a
@@ -459,31 +487,53 @@ class Tracker3D:
         """The combined estimate at the last step's time."""
         if self._t is None:
             return None
+        return self._estimate_of(self._combine())
+
+    # -- private ----------------------------------------------------------------------------
+
+    def _combine(self) -> list[float]:
+        """The combined state, turn rate, position variances and size (kernel_layout's
+        ``COMBINE_*`` slots) of the current bank."""
+        out = self._combined
+        if self._codes is not None:
+            kernel_dispatch.current().track_combine(self._mu, self._x, self._p, self._codes, out)
+            return out.tolist()
         mu = self._mu
         xs = self._x
         x = mu @ xs
         # Only the diagonal of the combined position covariance Σ μ_j (P_j + d_j d_jᵀ) is
-        # published (σ per axis): computed alone, as plain floats where NumPy calls cost more.
+        # published (σ per axis).
         d = xs[:, POS] - x[POS]
-        var = mu @ self._p[:, _POS_IDX, _POS_IDX] + mu @ (d * d)
-        mus = mu.tolist()
+        out[COMBINE_STATE : COMBINE_STATE + 9] = x[:9]
+        out[COMBINE_VAR : COMBINE_VAR + 3] = mu @ self._p[:, _POS_IDX, _POS_IDX] + mu @ (d * d)
         omega = 0.0
-        for m, model, xi in zip(mus, self.models, xs, strict=True):
+        for m, model, xi in zip(mu.tolist(), self.models, xs, strict=True):
             omega += m * model.angular_speed(xi)
-        xl = x.tolist()
-        sig = [math.sqrt(max(v, 0.0)) for v in var.tolist()]
+        out[COMBINE_OMEGA] = omega
+        out[COMBINE_SIZE] = float(mu @ xs[:, SIZE])
+        out[COMBINE_SIZE_VAR] = float(mu @ self._p[:, SIZE, SIZE])
+        return out.tolist()
+
+    def _estimate_of(self, c: list[float]) -> Track3DEstimate:
+        """The published estimate at the last step's time from :meth:`_combine`'s output."""
+        assert self._t is not None
+        v = COMBINE_VAR
+        sig = (
+            math.sqrt(max(c[v], 0.0)),
+            math.sqrt(max(c[v + 1], 0.0)),
+            math.sqrt(max(c[v + 2], 0.0)),
+        )
+        s = COMBINE_STATE
         self._last = Track3DEstimate(
             t=self._t,
-            position_m=(xl[0], xl[1], xl[2]),
-            velocity_m_s=(xl[3], xl[4], xl[5]),
-            acceleration_m_s2=(xl[6], xl[7], xl[8]),
-            angular_speed_rad_s=omega,
-            position_sigma_m=(sig[0], sig[1], sig[2]),
-            model_probabilities=dict(zip(self.names, mus, strict=True)),
+            position_m=(c[s], c[s + 1], c[s + 2]),
+            velocity_m_s=(c[s + 3], c[s + 4], c[s + 5]),
+            acceleration_m_s2=(c[s + 6], c[s + 7], c[s + 8]),
+            angular_speed_rad_s=c[COMBINE_OMEGA],
+            position_sigma_m=sig,
+            model_probabilities=dict(zip(self.names, self._mu.tolist(), strict=True)),
         )
         return self._last
-
-    # -- private ----------------------------------------------------------------------------
 
     def _start(self, t: float, y: FloatArray, r: FloatArray) -> None:
         cfg = self.config
@@ -530,17 +580,16 @@ class Tracker3D:
             pi = markov_matrix(len(self.models), self.config.switch_rate_hz, dt)
             xs, ps, self._mu = imm_mix(xs, ps, self._mu, pi)
         # F = diag(F_model, 1) and Q = diag(Q_model, q_size dt): the size is carried by every
-        # model. All models in one stacked product (one NumPy call instead of one per model).
-        fs, qs = self._fq
-        new_x = np.empty_like(xs)
-        n = STATE_DIM
-        for j, model in enumerate(self.models):
-            new_x[j, :n], fs[j, :n, :n], qs[j, :n, :n] = model.predict(xs[j, :n], dt)
-        new_x[:, SIZE] = xs[:, SIZE]
-        qs[:, SIZE, SIZE] = self.config.q_size_m2_s * dt
-        new_p = fs @ ps @ fs.transpose(0, 2, 1)
-        new_p += qs
-        self._x, self._p = new_x, _sym_stack(new_p)
+        # model; every model in one kernel call (or one stacked NumPy product).
+        new_x, new_p = np.empty_like(xs), np.empty_like(ps)
+        q_size = self.config.q_size_m2_s
+        if self._codes is None:
+            predict_models(self.models, xs, ps, dt, q_size, new_x, new_p)
+        else:
+            kernel_dispatch.current().track_predict(
+                xs, ps, self._codes, self._q, self._q_omega, dt, q_size, new_x, new_p
+            )
+        self._x, self._p = new_x, new_p
 
     def _update_models(
         self, update: Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray, float]]
@@ -651,39 +700,6 @@ def _unit_update(
     return x_new, _sym(p_new), loglik
 
 
-def _unit_update_all(
-    xs: FloatArray, ps: FloatArray, m: FloatArray, sigma_m: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """:func:`_unit_update` of every model at once on stacked (n, d) states and (n, d, d)
-    covariances (the same arithmetic, batched: one NumPy call per step for all models)."""
-    size = xs[:, SIZE]
-    nu = size[:, None] * m - xs[:, POS]  # (n, 3)
-    pht = ps[:, :, POS] - ps[:, :, SIZE, None] * m  # (n, d, 3) = P Hᵀ
-    rn = (size * size)[:, None, None] * sigma_m  # (n, 3, 3)
-    s = pht[:, POS, :] - m[:, None] * pht[:, SIZE, None, :] + rn
-    s_inv, loglik = _inv3_loglik_stack(s, nu)
-    gain = pht @ s_inv  # (n, d, 3)
-    xs_new = xs + (gain @ nu[:, :, None])[:, :, 0]
-    gt = gain.transpose(0, 2, 1)
-    a = ps - gain @ pht.transpose(0, 2, 1)  # (I − KH) P
-    aht = a[:, :, POS] - a[:, :, SIZE, None] * m  # A Hᵀ
-    # A − A Hᵀ Kᵀ + K Rn Kᵀ, with the two products sharing Kᵀ.
-    ps_new = a - (aht - gain @ rn) @ gt
-    return xs_new, _sym_stack(ps_new), loglik
-
-
-def _size_update(
-    xs: FloatArray, ps: FloatArray, size: float, var: float
-) -> tuple[FloatArray, FloatArray]:
-    """Scalar Joseph-form update of every model's state on a measured size (``H = e_R``)."""
-    s = ps[:, SIZE, SIZE] + var  # (n,)
-    gain = ps[:, :, SIZE] / s[:, None]  # (n, d)
-    xs_new = xs + gain * (size - xs[:, SIZE])[:, None]
-    a = ps - gain[:, :, None] * ps[:, None, SIZE, :]
-    ps_new = a - a[:, :, SIZE, None] * gain[:, None, :] + var * gain[:, :, None] * gain[:, None, :]
-    return xs_new, 0.5 * (ps_new + ps_new.transpose(0, 2, 1))
-
-
 def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
     """Inverse and log-determinant of a symmetric positive-definite 3×3, by cofactors."""
     (a, b, c), (_, d, e), (_, _, f) = s.tolist()
@@ -696,34 +712,6 @@ def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
     return inv, math.log(det)
 
 
-def _inv3_loglik_stack(s: FloatArray, nu: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Inverses of a (n, 3, 3) stack of innovation covariances (symmetrised first, by cofactors
-    as :func:`_inv3_logdet`) and the Gaussian log-likelihoods of the (n, 3) innovations: a few
-    models, in floats, where ``np.linalg`` and ``einsum`` cost more per call than the work."""
-    invs: list[list[list[float]]] = []
-    logliks: list[float] = []
-    for ((a, b0, c0), (b1, d, e0), (c1, e1, f)), (u, v, w) in zip(
-        s.tolist(), nu.tolist(), strict=True
-    ):
-        # 0.5 (S + Sᵀ) element by element, as the per-model update symmetrises.
-        b, c, e = 0.5 * (b0 + b1), 0.5 * (c0 + c1), 0.5 * (e0 + e1)
-        c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-        det = a * c00 + b * c01 + c * c02
-        if not det > 0.0:
-            raise np.linalg.LinAlgError(f"innovation covariance is not positive definite: {s!r}")
-        c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-        i00, i01, i02 = c00 / det, c01 / det, c02 / det
-        i11, i12, i22 = c11 / det, c12 / det, c22 / det
-        invs.append([[i00, i01, i02], [i01, i11, i12], [i02, i12, i22]])
-        maha = (
-            u * (i00 * u + i01 * v + i02 * w)
-            + v * (i01 * u + i11 * v + i12 * w)
-            + w * (i02 * u + i12 * v + i22 * w)
-        )
-        logliks.append(-0.5 * (maha + math.log(det) + 3.0 * _LOG_2PI))
-    return np.array(invs), np.array(logliks)
-
-
 def _dot3(a: Sequence[float], b: Sequence[float]) -> float:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
@@ -732,12 +720,14 @@ def _sym(m: FloatArray) -> FloatArray:
     return np.asarray(0.5 * (m + m.T), dtype=np.float64)
 
 
-def _sym_stack(m: FloatArray) -> FloatArray:
-    """``_sym`` of every matrix of a (n, d, d) stack."""
-    out = m + m.transpose(0, 2, 1)
-    out *= 0.5
-    return out
-
-
 def _vec3(v: FloatArray) -> Vec3:
     return float(v[0]), float(v[1]), float(v[2])
+
+
+def _model_codes(models: Sequence[MotionModel]) -> npt.NDArray[np.int64] | None:
+    """The kernel code of every model, or None when one is not a model the kernels know."""
+    known = {ConstantVelocity: MODEL_CV, ConstantAcceleration: MODEL_CA, CoordinatedTurn: MODEL_CT}
+    codes = [known.get(type(m)) for m in models]
+    if any(c is None for c in codes):
+        return None
+    return np.array(codes, dtype=np.int64)
