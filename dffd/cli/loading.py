@@ -28,6 +28,7 @@ import dffd
 
 __all__ = [
     "KERNELS_MODULE",
+    "KERNEL_MODULES",
     "kernel_cache_dir",
     "kernel_cache_dirs",
     "kernels_cached",
@@ -37,6 +38,9 @@ __all__ = [
 
 # The module whose numba kernels are cached (dffd.core.kernels), relative to the package.
 KERNELS_MODULE = Path("core") / "kernels.py"
+# Every module with compiled kernels (importing dffd.core.kernels imports the 3D tracker's too);
+# all in the same directory, so in the same cache directory.
+KERNEL_MODULES = (KERNELS_MODULE, Path("core") / "kernels_track.py")
 # numba's user-wide cache (appdirs' user_cache_dir for appname "numba" on Linux).
 _USER_CACHE = Path("~/.cache/numba")
 
@@ -75,18 +79,25 @@ def kernels_cached(environ: dict[str, str] | None = None) -> bool:
 def kernels_warm(environ: dict[str, str] | None = None) -> bool:
     """True when numba will load every kernel from its cache instead of compiling it (see the
     module docstring for what is checked)."""
-    source = Path(dffd.__file__).parent / KERNELS_MODULE
     try:
-        text = source.read_bytes()
         version = metadata.version("numba").encode()
-    except (OSError, metadata.PackageNotFoundError):
+    except metadata.PackageNotFoundError:
         return False
-    stamp = hashlib.sha256(text).digest()
     cache = kernel_cache_dir(environ)
     tag = f"py{sys.version_info[0]}{sys.version_info[1]}"
-    names = _kernel_names(text.decode("utf-8", errors="replace"))
-    fresh = (_index_fresh(cache, f"{name}.{tag}", version, stamp) for name in names)
-    return bool(names) and all(fresh)
+    for module in KERNEL_MODULES:
+        source = Path(dffd.__file__).parent / module
+        try:
+            text = source.read_bytes()
+        except OSError:
+            return False
+        stamp = hashlib.sha256(text).digest()
+        names = _kernel_names(text.decode("utf-8", errors="replace"), module.stem)
+        if not names or not all(
+            _index_fresh(cache, f"{name}.{tag}", version, stamp) for name in names
+        ):
+            return False
+    return True
 
 
 def say_if_compiling(command: str, *, background: bool = False) -> None:
@@ -113,12 +124,12 @@ _KERNEL_RE = re.compile(r"^@_jit\(.*?^def (\w+)\(", re.MULTILINE | re.DOTALL)
 _VERSION_HEAD_BYTES = 64
 
 
-def _kernel_names(source: str) -> list[str]:
-    """numba's cache file stems of the kernels: ``kernels.<name>-<first line>``."""
+def _kernel_names(source: str, stem: str = KERNELS_MODULE.stem) -> list[str]:
+    """numba's cache file stems of the kernels of module ``stem``: ``<stem>.<name>-<line>``."""
     names = []
     for match in _KERNEL_RE.finditer(source):
         line = source.count("\n", 0, match.start()) + 1
-        names.append(f"{KERNELS_MODULE.stem}.{match.group(1)}-{line}")
+        names.append(f"{stem}.{match.group(1)}-{line}")
     return names
 
 
