@@ -101,6 +101,8 @@ class BackgroundWarmup:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
         )
+        if self._stopping.is_set():  # stop() came before the process existed: end it now
+            proc.terminate()
         with contextlib.suppress(OSError):  # already gone, or not allowed: it yields less
             os.setpriority(os.PRIO_PROCESS, proc.pid, WARMUP_NICENESS)
         try:
