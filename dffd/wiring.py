@@ -112,6 +112,11 @@ def scheduler_config(
         ),
         pan_tilt_max_correction_deg_s=sc.pan_tilt_max_correction_deg_s,
         pan_tilt_min_interval_s=1.0 / sc.pan_tilt_max_command_hz,
+        # The search sweep over the [camera] model's pan/tilt range (dffd.scheduler.search).
+        search_after_s=sc.search_after_s if sc.search_after_s > 0 else None,
+        search_retry_s=sc.search_retry_s,
+        pan_range_deg=profile.pan_range_deg,
+        tilt_range_deg=profile.tilt_range_deg,
     )  # fmt: skip
 
 

@@ -248,6 +248,17 @@ class SchedulerSection(_Section):
     pan_tilt_search_s: Annotated[float, Field(ge=0, le=60)] = Field(
         default=2.0, description="follow the lost target's predicted path this long, then return"
     )
+    search_after_s: Annotated[float, Field(ge=0, le=3600)] = Field(
+        default=3.0,
+        description=(
+            "automatic acquisition that finds no target this long sweeps pan/tilt over the "
+            "camera's range, s (0: never)"
+        ),
+    )
+    search_retry_s: Annotated[float, Field(ge=0, le=86400)] = Field(
+        default=60.0,
+        description="a sweep that found nothing: hold where it began this long, then again, s",
+    )
 
 
 class EstimatorsSection(_Section):

@@ -32,7 +32,10 @@ move too (a target crossing the view fast is caught only there; :mod:`dffd.step`
 start after ``acquire_stable_frames`` frames with a contour; pan/tilt follows with velocity
 feed-forward from the first two centroids; after a loss the head searches along the target's
 predicted path, then returns to where it was last seen, while the core keeps searching (see
-:mod:`dffd.scheduler`).
+:mod:`dffd.scheduler`). Automatic acquisition (a start without ``[target] roi``, ``acquire``
+without an ROI, a loss) that sees nothing for ``scheduler.search_after_s`` sweeps pan/tilt over
+the camera's range until the target shows (:mod:`dffd.scheduler.search`; logged and reported by
+:mod:`~dffd.daemon.searchwatch`); ``release`` never searches.
 
 Shutdown (SIGTERM/SIGINT): stop pan/tilt, publish the retained ``offline`` status, flush the
 JSONL log, say so on the console, exit 0 — all within :data:`SHUTDOWN_TIMEOUT_S`. On a
@@ -70,6 +73,7 @@ from dffd.daemon.estimator import EstimatorResult, EstimatorThread
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
 from dffd.daemon.notify import Notifier
 from dffd.daemon.payloads import FirstDepthGate, Payloads, truth_payload, without_depth
+from dffd.daemon.searchwatch import SearchWatch
 from dffd.daemon.startup import (
     CAMERA_INIT_TIMEOUT_S,
     DaemonError,
@@ -209,6 +213,7 @@ class Daemon:
         self._commands: Commands | None = None
         self.camera: Camera | None = None
         self.scheduler: Scheduler | None = None
+        self._search_watch: SearchWatch | None = None
         self.publisher: Publisher | None = None
         self._sched_config: SchedulerConfig | None = None
         self.dashboard: Dashboard | None = None
@@ -319,6 +324,7 @@ class Daemon:
                 self.scheduler.set_track_focus(
                     lens.counts_for_depth(cfg.scheduler.initial_focus_depth_m)
                 )
+                self._search_watch = SearchWatch(self.scheduler, self.board)
                 log = JsonlLog(
                     cfg.log.dir, max_bytes=cfg.log.max_bytes, backup_count=cfg.log.backup_count
                 )
@@ -372,6 +378,8 @@ class Daemon:
                     self.camera = camera
                     actuators = Actuators(camera, self.scheduler, self._wake.set)
                     await source.start()
+                    if cfg.target.roi is None:  # automatic acquisition: sweep if not in view
+                        self.scheduler.arm_search(time.monotonic())
                     self._results_failed = asyncio.get_running_loop().create_future()
                     tasks = [
                         group.create_task(self._capture_loop(source), name="capture"),
@@ -472,6 +480,7 @@ class Daemon:
 
     async def _scheduler_loop(self, dispatch: Callable[[Action], object]) -> None:
         sched = self.scheduler
+        watch = self._search_watch  # None only in tests that drive this loop alone
         assert sched is not None
         while True:
             now = time.monotonic()
@@ -479,6 +488,8 @@ class Daemon:
             for action in actions:
                 _LOGGER.debug("action at %.4f: %r", now, action)
                 dispatch(action)
+            if watch is not None and watch.update(now):
+                self._publish_status(now)
             wake = sched.next_wakeup()
             delay = SCHEDULER_IDLE_S if wake is None else min(SCHEDULER_IDLE_S, wake - now)
             self._wake.clear()
@@ -586,13 +597,20 @@ class Daemon:
                 _LOGGER.info("ready: camera initialised and frames flowing")
             if flowing:
                 self.notifier.watchdog()
-            # A status that cannot be built must not end the status task (and with it the
-            # watchdog pings): skip that period, counted like any other unpublishable payload.
-            status = self.payloads.or_none(self.status_payload, now)
-            if status is not None:
-                publisher.publish(status)
-                self.console.update(self._snapshot(now, status))
+            self._publish_status(now)
             await asyncio.sleep(STATUS_PERIOD_S)
+
+    def _publish_status(self, now: float) -> None:
+        """Publish the retained status and show it on the console (periodically, and at once
+        when the search sweep starts, ends or gives up)."""
+        publisher = self.publisher
+        assert publisher is not None
+        # A status that cannot be built must not end the status task (and with it the watchdog
+        # pings): skip that period, counted like any other unpublishable payload.
+        status = self.payloads.or_none(self.status_payload, now)
+        if status is not None:
+            publisher.publish(status)
+            self.console.update(self._snapshot(now, status))
 
     # -- commands ------------------------------------------------------------------------------
     async def _on_command(self, command: models.Command) -> dict[str, Any] | None:
@@ -647,7 +665,7 @@ class Daemon:
             bursts_accepted=self.board.bursts_accepted,
             bursts_rejected=self.board.bursts_rejected,
             frame_size=source.frame_size if source is not None else None,
-            message=self.board.message,
+            message=self.board.search_message(now) or self.board.message,
         )
 
     async def _execute(self, payload: bytes) -> models.CommandReply:

@@ -58,8 +58,16 @@ class Commands:
         sched = self.scheduler
         if isinstance(command, models.Acquire) and command.roi is None:
             await apply_to_core(self.estimator, lambda p: p.acquire_auto())
+            sched.arm_search(self._clock())
+            self._wake()
             self._acquired(None)
-            _LOGGER.info("acquire: searching the whole frame for the target (automatic detection)")
+            after = sched.config.search_after_s
+            _LOGGER.info(
+                "acquire: searching the whole frame for the target (automatic detection)%s",
+                ""
+                if after is None
+                else f"; pan/tilt sweeps its range if none is seen in {after:g} s",
+            )
             return {"roi": None}
         if isinstance(command, models.Acquire):
             assert command.roi is not None
@@ -71,6 +79,8 @@ class Commands:
                     "give [x, y, w, h] inside the image"
                 )
             await apply_to_core(self.estimator, lambda p: p.acquire_roi(x, y, w, h))
+            sched.disarm_search()  # the operator pointed at this view: no sweep until seen
+            self._wake()
             self._acquired((x, y, w, h))
             _LOGGER.info("acquire: target inside roi [%d, %d, %d, %d]", x, y, w, h)
             return {"roi": [x, y, w, h]}
@@ -90,13 +100,18 @@ class Commands:
             camera = self._camera()
             if camera is None:
                 raise CommandRejected("camera not initialised yet; retry")
+            armed = sched.search_armed
             sched.stop_pan_tilt()
             self._wake()
             try:
                 await camera.home()
             except ViscaError as exc:
                 raise CommandRejected(f"home failed: {exc}") from exc
-            sched.on_pan_tilt_failed(self._clock())  # re-anchor the model by inquiry
+            finally:
+                sched.on_pan_tilt_failed(self._clock())  # re-anchor the model by inquiry
+                if armed:  # automatic acquisition goes on from home (its timer restarts)
+                    sched.arm_search(self._clock())
+                self._wake()
             return None
         if isinstance(command, models.SetBurstPolicy):
             cfg = sched.config

@@ -64,6 +64,7 @@ class ConsoleSnapshot:
     tilt_deg: float = 0.0
     known_size_m: float | None = None  # the size CF1 is told (None: CF1 has no depth)
     measured_age_s: float | None = None  # age of depth_m["measured"] (a burst's, not per frame)
+    search: str | None = None  # the search sweep, in a few words (None: not sweeping)
 
 
 class Console:
@@ -140,10 +141,11 @@ class Console:
         best = f"{_num(snap.depth_m.get(snap.best), 3)} ({_age(snap.last_estimate_age_s)})"
         if is_stale(snap):
             best += " not current"
+        state = snap.state if not snap.search else f"{snap.state} ({snap.search})"
         _LOGGER.info(
             "%s %s: %.1f fps, %.1f est/s, depth %.2f/%s Hz; z[%s]=%s truth=%s; link %s "
             "(timeouts %d), mqtt %s (backlog %d), dropped %d",
-            snap.camera, snap.state, snap.frame_hz, snap.estimate_hz, snap.depth_hz,
+            snap.camera, state, snap.frame_hz, snap.estimate_hz, snap.depth_hz,
             _num(snap.depth_limit_hz, 2), snap.best, best, _num(snap.truth_z_m, 3),
             "up" if snap.link_connected else "DOWN", snap.link_timeouts,
             "up" if snap.mqtt_connected else "DOWN", snap.mqtt_backlog, snap.frames_dropped,
@@ -164,6 +166,7 @@ def render(snap: ConsoleSnapshot) -> Group:
         (snap.camera, "bold cyan"),
         " ",
         (snap.state, "bold green" if snap.state == "tracking" else "bold yellow"),
+        (f" ({snap.search})" if snap.search else "", "yellow"),
         " · last estimate ",
         (_age(snap.last_estimate_age_s), "bold red" if stale else ""),
         f" · up {snap.uptime_s:.0f} s · pan {snap.pan_deg:+.1f}° tilt {snap.tilt_deg:+.1f}°",

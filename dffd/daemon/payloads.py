@@ -207,7 +207,12 @@ def truth_payload(t_mono: float, truth: Any) -> models.Truth:
         velocity_m_s=_vec(getattr(truth, "velocity_world_mps", None)),
         acceleration_m_s2=_vec(getattr(truth, "acceleration_world_mps2", None)),
         angular_speed_rad_s=_fin(getattr(truth, "angular_speed_rad_s", None)),
+        in_view=_bool(getattr(truth, "in_view", None)),
     )
+
+
+def _bool(value: object) -> bool | None:
+    return None if value is None else bool(value)
 
 
 def _fin(value: float | None) -> float | None:

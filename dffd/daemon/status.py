@@ -14,6 +14,7 @@ from drivers.stream import StreamFrameSource
 
 if TYPE_CHECKING:
     from dffd.core.pipeline import Measurement
+    from dffd.scheduler import SearchStatus
     from drivers.visca.link import ViscaLink
 
 # Window over which achieved rates are computed.
@@ -56,6 +57,7 @@ class StatusBoard:
         self.spacing = DEFAULT_SPACING_COUNTS  # half the burst bracket (counts), for the limit
         self.known_size_m: float | None = None  # what CF1 is told (config or set_known_size)
         self.last_measured: tuple[float, float] | None = None  # (monotonic, z_m) of a burst
+        self.search: SearchStatus | None = None  # the scheduler's search sweep, if armed
 
     def on_frame(self, now: float) -> None:
         """A frame was delivered at ``now``."""
@@ -81,12 +83,17 @@ class StatusBoard:
 
     def on_acquire(self, roi: tuple[int, int, int, int] | None = None) -> None:
         """An acquire command: the core searches for the target (said until it tracks it)."""
-        where = "the whole frame" if roi is None else f"roi {list(roi)}"
         self.state = "acquiring"
-        self.message = (
-            f"acquire: searching {where} for the target; it must be in view (after a release "
-            "the head stays where it stopped)"
-        )
+        if roi is None:
+            self.message = (
+                "acquire: searching the whole frame for the target; if it is not in view, "
+                "pan/tilt sweeps the camera's range for it"
+            )
+        else:
+            self.message = (
+                f"acquire: searching roi {list(roi)} for the target (no sweep: the box is in "
+                "this view)"
+            )
 
     def on_release(self) -> None:
         """A release command: idle, and the last depths are no longer current."""
@@ -95,6 +102,37 @@ class StatusBoard:
         self.last_estimate_mono = None
         self.last_depth = {}
         self.last_measured = None
+
+    def search_payload(self, now: float) -> models.Search | None:
+        """The status's ``search`` block (None unless the search is armed and no target is
+        followed)."""
+        s = self.search
+        if s is None or self.state == "tracking":
+            return None
+        return models.Search(
+            phase=s.phase,
+            pass_number=s.pass_number,
+            view=s.view,
+            views=s.views,
+            elapsed_s=None if s.started_at is None else max(0.0, now - s.started_at),
+            next_pass_in_s=None if s.next_pass_at is None else max(0.0, s.next_pass_at - now),
+        )
+
+    def search_message(self, now: float) -> str | None:
+        """What the operator reads about the sweep (None unless sweeping or holding)."""
+        s = self.search_payload(now)
+        if s is None or s.phase == "waiting":
+            return None
+        if s.phase == "sweeping":
+            return (
+                f"searching: the target is not in view; pan/tilt sweeps the camera's range, view "
+                f"{s.view} of {s.views} (sweep {s.pass_number}, {s.elapsed_s or 0.0:.0f} s); "
+                "'release' stops it"
+            )
+        return (
+            f"searching: a whole sweep ({s.views} views) found no target; holding where it "
+            f"began, next sweep in {s.next_pass_in_s or 0.0:.0f} s; 'release' stops it"
+        )
 
     def estimate_age(self, now: float) -> float | None:
         """Seconds since the last published estimate (None: none since start or release)."""
@@ -128,7 +166,8 @@ class StatusBoard:
             state=self.state,  # type: ignore[arg-type]
             camera=self.camera_name,
             last_estimate_age_s=self.estimate_age(now),
-            message=self.message,
+            message=self.search_message(now) or self.message,
+            search=self.search_payload(now),
             rates=models.Rates(
                 frame_hz=self.frames.rate(now),
                 estimate_hz=self.estimates.rate(now),
@@ -190,7 +229,17 @@ class StatusBoard:
             pan_deg=pan_tilt_deg[0],
             tilt_deg=pan_tilt_deg[1],
             known_size_m=self.known_size_m,
+            search=_search_short(status.search),
         )
+
+
+def _search_short(search: models.Search | None) -> str | None:
+    """The console's few words on the sweep."""
+    if search is None or search.phase == "waiting":
+        return None
+    if search.phase == "sweeping":
+        return f"searching: view {search.view}/{search.views}, sweep {search.pass_number}"
+    return f"search found nothing; next sweep in {search.next_pass_in_s or 0.0:.0f} s"
 
 
 class RateMeter:

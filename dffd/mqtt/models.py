@@ -181,6 +181,26 @@ class Measurement(Payload):
 # -- status ------------------------------------------------------------------------------------
 
 
+class Search(BaseModel):
+    """The search sweep of automatic acquisition (pan/tilt visits its range view by view)."""
+
+    model_config = _STRICT
+
+    phase: Literal["waiting", "sweeping", "holding"] = Field(
+        description="waiting: no target yet, a sweep starts at next_pass_in_s; sweeping: visiting "
+        "views; holding: a sweep found nothing, the head waits where it began"
+    )
+    pass_number: NonNegInt = Field(description="sweeps so far since the target was last seen")
+    view: NonNegInt = Field(description="views visited in this sweep")
+    views: NonNegInt = Field(description="views in a sweep")
+    elapsed_s: Annotated[float, Field(ge=0)] | None = Field(
+        default=None, description="time since this (or the last) sweep began"
+    )
+    next_pass_in_s: Annotated[float, Field(ge=0)] | None = Field(
+        default=None, description="waiting/holding: time until the next sweep"
+    )
+
+
 class Rates(BaseModel):
     """Achieved rates over the last status period, Hz."""
 
@@ -283,6 +303,10 @@ class Status(Payload):
     )
     version: str
     message: str | None = Field(default=None, description="human-readable note, e.g. why offline")
+    search: Search | None = Field(
+        default=None,
+        description="the search sweep while automatic acquisition has no target; null otherwise",
+    )
 
 
 # -- commands ----------------------------------------------------------------------------------
@@ -383,6 +407,9 @@ class Truth(Payload):
         default=None,
         description="true turn rate of the velocity about the upward vertical, + counter-clockwise"
         " seen from above (docs/tracking3d.md)",
+    )
+    in_view: bool | None = Field(
+        default=None, description="the target's whole outline lies inside the frame"
     )
 
 

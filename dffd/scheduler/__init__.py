@@ -9,6 +9,7 @@ Pure and synchronous: no I/O, no clock of its own (docs/design.md §5). One idea
 - :mod:`~dffd.scheduler.focus`: the focus history (stationary intervals, for tagging);
 - :mod:`~dffd.scheduler.bursts`: burst planning and the claims awaiting their frames;
 - :mod:`~dffd.scheduler.head`: the pan/tilt head model and centring controller;
+- :mod:`~dffd.scheduler.search`: the search sweep when automatic acquisition finds nothing;
 - :mod:`~dffd.scheduler.geometry`: image angles and the pan/tilt speed table;
 - :mod:`~dffd.scheduler.wire` and :mod:`~dffd.scheduler.budget`: VISCA message times and the
   link budget (focus move times, the theoretical depth rate);
@@ -37,6 +38,7 @@ from dffd.scheduler.geometry import (
     speed_of_index,
     visca_speed_index,
 )
+from dffd.scheduler.search import SearchStatus, search_views
 from dffd.scheduler.stats import SchedulerStats
 from dffd.scheduler.wire import link_time_s
 
@@ -54,12 +56,14 @@ __all__ = [
     "Scheduler",
     "SchedulerConfig",
     "SchedulerStats",
+    "SearchStatus",
     "depth_rate_limit",
     "focus_move_time_s",
     "link_time_s",
     "nearest_speed_index",
     "order_settings",
     "pixel_offset_to_deg",
+    "search_views",
     "speed_of_index",
     "visca_speed_index",
 ]

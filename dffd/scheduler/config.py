@@ -87,6 +87,22 @@ class SchedulerConfig:
     pan_tilt_min_interval_s: float
     pan_tilt_poll_interval_s: float = 0.25
     absolute_speed_index: int = 0x10
+    # Search sweep (dffd.scheduler.search). Automatic acquisition that has seen no target for
+    # search_after_s sweeps the head over its pan/tilt range (the camera model's); None: never
+    # (the scheduler's own default: the bench and the tests; the service sets it).
+    search_after_s: float | None = None
+    # A pass that found nothing: hold where it began for this long, then sweep again.
+    search_retry_s: float = 60.0
+    # Dwell at each view: the frames exposed after the head stopped there. The core searches the
+    # whole frame at least every 5th frame while it acquires after a loss (reacquire_every_frames;
+    # every frame before a first sighting): 0.3 s holds 9 frames at 30 fps, two of those searches
+    # or more, and the centroid of a hit comes back (1-2 frames of latency) before the next move.
+    search_dwell_s: float = 0.3
+    # Overlap of neighbouring views, a fraction of the field of view: a target no wider than this
+    # is wholly inside some view (the detector ignores outlines that touch the frame's edge).
+    search_overlap: float = 0.2
+    pan_range_deg: tuple[float, float] | None = None  # the head's range (None: no sweep)
+    tilt_range_deg: tuple[float, float] | None = None
     pan_sign: int = 1  # +1: image x to the right is positive pan
     tilt_sign: int = 1  # +1: image y upwards is positive tilt
 
@@ -107,6 +123,16 @@ class SchedulerConfig:
             raise ValueError("pan_sign and tilt_sign must be +1 or -1")
         if self.pan_tilt_search_s < 0 or self.pan_tilt_lost_s < 0:
             raise ValueError("pan_tilt_lost_s and pan_tilt_search_s must be >= 0")
+        if self.search_after_s is not None and self.search_after_s < 0:
+            raise ValueError(f"search_after_s must be >= 0 (got {self.search_after_s})")
+        if self.search_retry_s < 0 or self.search_dwell_s < 0:
+            raise ValueError("search_retry_s and search_dwell_s must be >= 0")
+        if not 0.0 <= self.search_overlap < 1.0:
+            raise ValueError(f"search_overlap must be in [0, 1) (got {self.search_overlap})")
+        for name in ("pan_range_deg", "tilt_range_deg"):
+            span = getattr(self, name)
+            if span is not None and not span[0] < span[1]:
+                raise ValueError(f"{name} must be (low, high) with low < high (got {span!r})")
         if self.acquire_stable_frames < 0:
             raise ValueError("acquire_stable_frames must be >= 0")
         for name in ("pan_speeds_deg_s", "tilt_speeds_deg_s"):

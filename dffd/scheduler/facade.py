@@ -50,6 +50,7 @@ from dffd.scheduler.clock import ExposureClock
 from dffd.scheduler.config import SchedulerConfig
 from dffd.scheduler.focus import FocusHistory, Move
 from dffd.scheduler.head import PanTiltHead
+from dffd.scheduler.search import SearchStatus
 from dffd.scheduler.stats import SchedulerStats
 
 Phase = Literal[
@@ -79,6 +80,7 @@ class Scheduler:
         # Focus knowledge.
         self._counts: int | None = None  # stationary counts, if known
         self._track_counts: int | None = config.initial_focus_counts
+        self._acquire_counts: int | None = config.initial_focus_counts  # focus of a sweep
         self._track_from = -math.inf  # tracking exposures count from this time
         self._inquiry_due = 0.0
         self._inquiry_pending = False
@@ -213,11 +215,11 @@ class Scheduler:
     # -- pan/tilt events --------------------------------------------------------------------
     def on_pan_tilt_done(self, t: float) -> None:
         """The last pan/tilt action finished (Completion received or inquiry answered)."""
-        self._pt.busy = False
+        self._pt.on_done(t)
 
     def on_pan_tilt_failed(self, t: float) -> None:
         """The last pan/tilt action failed; the model is re-anchored by the next inquiry."""
-        self._pt.busy = False
+        self._pt.on_done(t)
         self._pt.poll_due = t
         self.stats.pan_tilt_failures += 1
 
@@ -284,8 +286,11 @@ class Scheduler:
         self._pt.on_centroid(t, centroid_px, pan_deg, tilt_deg)
 
     def set_track_focus(self, counts: int) -> None:
-        """Tracking focus to use until the core plans bursts (e.g. from an initial depth)."""
+        """Tracking focus to use until the core plans bursts (e.g. from an initial depth); the
+        first one given is also the focus of a search sweep (the acquisition focus)."""
         self._track_counts = int(counts)
+        if self._acquire_counts is None:
+            self._acquire_counts = int(counts)
 
     def set_policy(self, every_frames: int, sigma_trigger_m: float | None) -> None:
         """Change the burst policy at run time (the ``set_burst_policy`` command)."""
@@ -303,13 +308,37 @@ class Scheduler:
         self._burst_now = False
 
     def stop_pan_tilt(self) -> None:
-        """Stop following the target: one stop is issued, then nothing until a new centroid."""
+        """Stop following the target: one stop is issued, then nothing until a new centroid;
+        no search sweep until :meth:`arm_search` (``release``)."""
         self._pt.release()
+
+    def arm_search(self, t: float) -> None:
+        """Automatic acquisition from ``t`` (``acquire`` without an ROI, a start without one):
+        when no target is seen for ``search_after_s`` the head sweeps its range
+        (:mod:`dffd.scheduler.search`); a sighting ends the sweep, a loss re-arms it."""
+        self._pt.arm_search(t)
+
+    def disarm_search(self) -> None:
+        """Acquisition in an ROI: no sweep until the target has been seen (then a loss sweeps)."""
+        self._pt.search.disarm(until_seen=True)
+
+    @property
+    def search_armed(self) -> bool:
+        """Automatic acquisition is in force (a sweep follows when nothing is seen)."""
+        return self._pt.search.armed
+
+    @property
+    def search_status(self) -> SearchStatus | None:
+        """The search sweep while no target is followed (None: not armed, or following one)."""
+        return self._pt.search_status()
 
     # -- decisions --------------------------------------------------------------------------
     def next_actions(self, now: float) -> list[Action]:
         """Actions due at ``now``; the shell executes them in order (focus first)."""
         actions: list[Action] = []
+        if self._pt.search.sweeping and self._plan is None and self._acquire_counts is not None:
+            # The target's depth is unknown again: look at the acquisition focus.
+            self._track_counts = self._acquire_counts
         focus_action = self._focus_step(now)
         if focus_action is not None:
             actions.append(focus_action)

@@ -34,6 +34,7 @@ from dffd.scheduler.geometry import (
     speed_of_index,
     step_index,
 )
+from dffd.scheduler.search import Search, SearchStatus
 from dffd.scheduler.wire import PAN_TILT_POSITION_REPLY_BYTES, link_time_s
 
 # Centroids further apart than this (s) do not make a velocity (the target was lost between).
@@ -69,6 +70,8 @@ class PanTiltHead:
 
     A target slower than the slowest speed (2°/s) is thus followed by drive pulses in the focus
     transits (duty cycle between 0 and 2°/s), never by a speed held through the measured frames.
+
+    With no target to follow, an armed :class:`~dffd.scheduler.search.Search` sweeps the range.
     """
 
     def __init__(self, config: SchedulerConfig) -> None:
@@ -93,6 +96,7 @@ class PanTiltHead:
         self._last_step = -math.inf
         self._quiet_code = [0, 0]  # per axis (pan, tilt): the speed run through measured frames
         self._correcting = [False, False]  # a correction is running on that axis
+        self.search = Search(config)  # the sweep while automatic acquisition sees nothing
 
     # -- model ---------------------------------------------------------------------------------
     def at(self, t: float) -> tuple[float, float]:
@@ -183,6 +187,7 @@ class PanTiltHead:
             self._velocity_samples = 0
         self._target = target
         self._target_t = t
+        self.search.seen(t, self._velocity[0])
         self._stop_pending = False
         self._return_pending = False
         self._eval_due = min(self._eval_due, self._last_cmd_t + self._min_interval())
@@ -193,13 +198,30 @@ class PanTiltHead:
         self._track_rate_t = t
 
     def release(self) -> None:
-        """Stop following: one stop, then nothing until a new centroid (no search)."""
+        """Stop following: one stop, then nothing until a new centroid (no search, no sweep)."""
         seg = self._seg
         if self._target is not None or seg.rate != (0.0, 0.0) or seg.goal is not None:
             self._stop_pending = True
             self._eval_due = self._last_cmd_t + self._min_interval()
         self._return_pending = False
+        self.search.disarm()
         self._forget_target()
+
+    def arm_search(self, t: float) -> None:
+        """Automatic acquisition from ``t``: sweep when nothing is seen for ``search_after_s``."""
+        self.search.arm(t)
+        self._eval_due = min(self._eval_due, t)
+
+    def on_done(self, t: float) -> None:
+        """The outstanding pan/tilt action ended at ``t`` (done, answered or failed)."""
+        self.busy = False
+        self.search.on_move_done(t)
+        if self.search.sweeping:
+            self._eval_due = min(self._eval_due, t)  # the dwell at the new view starts
+
+    def search_status(self) -> SearchStatus | None:
+        """The sweep's status while no target is followed (None: not armed, or following)."""
+        return None if self._target is not None else self.search.status()
 
     @property
     def searching(self) -> bool:
@@ -308,9 +330,10 @@ class PanTiltHead:
             seen = self._target
             self._return_pending = False
             self._forget_target()
-            return PanTiltAbsolute(seen[0], seen[1], *self._absolute_speeds()), idle
+            self.search.restart_timer(now)  # hold there search_after_s before sweeping
+            return PanTiltAbsolute(seen[0], seen[1], *self._absolute_speeds()), now
         if self._target is None:
-            return None, idle
+            return self.search.decide(now, self.at(now), self._absolute_speeds())
         pan_now, tilt_now = self.at(now)
         ff = self._feedforward()
         # Extrapolate the target to now (bounded by the search horizon).

@@ -96,6 +96,12 @@ class _SnapshotCollector(Collector):
         for name in STATES:
             state.add_metric([name], 1.0 if st.state == name else 0.0)
         out.append(state)
+        search = st.search
+        gauge(
+            "dffd_search_sweeping",
+            "1 while pan/tilt sweeps its range for a target automatic acquisition cannot see",
+            1.0 if search is not None and search.phase == "sweeping" else 0.0,
+        )
         gauge(
             "dffd_last_estimate_age_seconds",
             "Age of the last published estimate (absent when there is none)",

@@ -235,12 +235,17 @@ function showStatus(snap) {
   const st = snap.status;
   $("camera").textContent = st.camera || "";
   const state = st.availability === "offline" ? "offline" : (st.state || "–");
-  $("state").textContent = state;
+  const sw = st.search;  // the pan/tilt search sweep of automatic acquisition, if any
+  const searching = sw && sw.phase !== "waiting";
+  $("state").textContent = searching ? `${state} · searching` : state;
   $("state").className = `badge ${state}`;
   $("message").textContent = snap.message || st.message || "";
   const r = st.rates || {}, ln = st.link || {}, mq = st.mqtt || {}, dr = st.drops || {};
   body.innerHTML = [
     row("state", state),
+    ...(searching ? [row("search", sw.phase === "sweeping"
+      ? `sweeping: view ${sw.view} of ${sw.views} (sweep ${sw.pass_number}, ${fmt(sw.elapsed_s, 0)} s)`
+      : `a whole sweep found nothing; next in ${fmt(sw.next_pass_in_s, 0)} s`)] : []),
     row("last estimate", snap.last_estimate_age_s === null ? "none" : `${fmt(snap.last_estimate_age_s, 1)} s ago`),
     row("frames", `${fmt(r.frame_hz, 1)} Hz`),
     row("estimates", `${fmt(r.estimate_hz, 1)} Hz`),
