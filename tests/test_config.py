@@ -350,8 +350,10 @@ def test_check_config_finds_what_stops_run_with_the_same_code(
     path = write(tmp_path, text.replace("PORT", str(port)).replace("VIDEO", str(video)))
     flags = ["--check-files"] if with_devices else []
     if with_devices:
-        assert cli.main(["check-config", str(path)]) == 0  # devices: only on request
-        capsys.readouterr()
+        assert cli.main(["check-config", str(path)]) == 0  # devices: only on request…
+        note = capsys.readouterr().err  # …but it says that run would refuse them here
+        assert "only with --check-files" in note
+        assert expected in note
     assert cli.main(["check-config", *flags, str(path)]) == 2
     assert expected in capsys.readouterr().err
     assert cli.main(["run", "--config", str(path), "--no-console"]) == 2  # refused alike

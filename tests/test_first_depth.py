@@ -13,6 +13,7 @@ from dataclasses import replace
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
 from dffd.daemon.payloads import (
+    FIRST_DEPTH_FORCE_BURSTS,
     FIRST_DEPTH_MAX_BURSTS,
     FirstDepthGate,
     Payloads,
@@ -63,6 +64,25 @@ def test_a_loss_closes_the_gate_again_and_it_cannot_stay_closed_for_ever() -> No
         assert not gate.passes(ESTIMATE)
     gate.on_measurement(EXTRAPOLATED)  # a target outrunning its brackets is not hidden for ever
     assert gate.passes(ESTIMATE)
+
+
+def test_a_first_depth_with_a_huge_sigma_waits_for_a_precise_one() -> None:
+    """After a release and an automatic re-acquisition on the demo the first (full-range) burst
+    bracketed its vertex at 10.5 m for a target at 8.1 m; the estimate said 11.6 m, σ 18 m."""
+    gate = FirstDepthGate()
+    wild = replace(BRACKETED, z_m=10.49, sigma_m=0.21)
+    vague = replace(ESTIMATE, z_m=11.57, sigma_m=18.2)
+    gate.on_measurement(wild)
+    assert not gate.passes(vague)
+    gate.on_measurement(replace(BRACKETED, z_m=7.73, sigma_m=0.009))
+    assert gate.passes(replace(ESTIMATE, z_m=7.62, sigma_m=0.2))
+    # A σ that never shrinks does not hide the depths for ever either.
+    gate = FirstDepthGate()
+    for _ in range(FIRST_DEPTH_FORCE_BURSTS - 1):
+        gate.on_measurement(wild)
+        assert not gate.passes(vague)
+    gate.on_measurement(wild)
+    assert gate.passes(vague)
 
 
 def test_a_held_back_estimate_keeps_its_image_fields_and_loses_every_depth() -> None:

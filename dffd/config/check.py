@@ -65,6 +65,14 @@ def run(args: argparse.Namespace) -> int:
         error = ConfigError(found, str(args.file))
         print(f"dffd check-config: {error}", file=sys.stderr)
         return EXIT_USAGE
+    absent = [] if args.check_files else _missing_devices(config)
+    if absent:
+        # Valid as a file (it may be meant for another machine), but `dffd run` here refuses it.
+        print(
+            "dffd check-config: note: devices are checked only with --check-files; on this "
+            "machine `dffd run` would stop with exit 2: " + "; ".join(absent),
+            file=sys.stderr,
+        )
     if args.json:
         print(json.dumps(config.model_dump(mode="json"), indent=2))
     else:

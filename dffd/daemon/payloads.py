@@ -12,6 +12,11 @@ So depths are published only once a burst with its vertex inside its bracket has
 (or :data:`FIRST_DEPTH_MAX_BURSTS` accepted bursts, so a target that keeps outrunning its
 brackets is not hidden for ever); until then estimates go out with their depth fields null.
 The ``…/measurement`` payloads of those bursts are published as they are, with their reason.
+The first burst's vertex can also fall *inside* its (full-range) bracket and far from the target:
+after a release and an automatic re-acquisition on the demo it read 10.5 m for a target at 8.1 m
+and the first estimate said 11.6 m — with σ 18 m. So the gate also waits until the best
+estimate's own σ is at most :data:`FIRST_DEPTH_MAX_REL_SIGMA` of its depth (first depths of
+normal starts: σ 0.17-0.19 m at 9.8 m, 2 %), or :data:`FIRST_DEPTH_FORCE_BURSTS` accepted bursts.
 """
 
 from __future__ import annotations
@@ -38,9 +43,15 @@ _T = TypeVar("_T")
 # scheduler centres each next bracket on the last vertex, so on the default demo the second
 # burst already brackets it (measured: 1 extrapolated first burst per start, none after).
 FIRST_DEPTH_MAX_BURSTS = 3
+# The first published depth's 1σ is at most this fraction of it (normal starts: 2 %; the wild
+# first burst above: 160 %), unless this many bursts were accepted (~3 s of bursts).
+FIRST_DEPTH_MAX_REL_SIGMA = 0.1
+FIRST_DEPTH_FORCE_BURSTS = 6
 
 __all__ = [
+    "FIRST_DEPTH_FORCE_BURSTS",
     "FIRST_DEPTH_MAX_BURSTS",
+    "FIRST_DEPTH_MAX_REL_SIGMA",
     "FirstDepthGate",
     "Payloads",
     "nonneg",
@@ -54,24 +65,29 @@ class FirstDepthGate:
 
     def __init__(self) -> None:
         self.open = False
+        self._bracketed = False  # a burst inside its bracket (or enough bursts) since reset
         self._accepted = 0  # accepted bursts since the filters were (re)initialised
         self.withheld = 0  # estimates published with their depths nulled, since start
 
     def on_measurement(self, m: CoreMeasurement) -> None:
-        """A burst closed: an accepted one inside its bracket opens the gate."""
+        """A burst closed: an accepted one inside its bracket readies the gate."""
         if not m.accepted:
             return
         self._accepted += 1
         if m.reason in ("", REASON_OK) or self._accepted >= FIRST_DEPTH_MAX_BURSTS:
-            self.open = True
+            self._bracketed = True
 
     def passes(self, est: CoreEstimate) -> bool:
         """True when ``est``'s depths may be published; an estimate without depths (filters
         not initialised: start, loss, release) closes the gate again."""
         if all(z is None for z in est.depth_m.values()):
-            self.open = False
+            self.open = self._bracketed = False
             self._accepted = 0
             return True
+        if not self.open and self._bracketed:
+            z, sigma = est.z_m, est.sigma_m
+            precise = z is not None and sigma is not None and sigma <= FIRST_DEPTH_MAX_REL_SIGMA * z
+            self.open = precise or self._accepted >= FIRST_DEPTH_FORCE_BURSTS
         if not self.open:
             self.withheld += 1
         return self.open
