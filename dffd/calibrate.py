@@ -28,6 +28,9 @@ to the depths; the vertices are then refitted in ``v`` through that model (as th
 its bursts) and the model refitted (:func:`dffd.calibrate_fit.fit_table`). The file written
 tabulates ``v = 1/(1/f − P)`` of the model densely over the calibrated range (PCHIP-interpolated
 by :class:`dffd.core.lens.Lens`); the model's residual at each depth is printed.
+:func:`calibrate_table` runs the procedure, fits the table and checks it
+(:func:`dffd.calibrate_check.check_table`: the table's σ per depth, the depths to sweep again),
+repeating the sweeps the check asks for.
 
 Lab procedure (real camera):
 
@@ -39,8 +42,10 @@ Lab procedure (real camera):
    ``capture.device`` (and its size/fps/fourcc) and ``lens.file`` (its focal length, pixel
    pitch and f-number are reused: f is fixed at a fixed zoom).
 3. At each prompt place the target at that depth along the optical axis (measure from the
-   front principal plane; ±5 mm matters at 1 m) and press Enter. About a minute per depth. Depths
-   the model cannot fit are named at the end: re-measure them.
+   front principal plane; ±5 mm matters at 1 m) and press Enter. About a minute per depth. A
+   depth the other depths predict badly (beyond ``REPEAT_SIGMA`` σ of the table fitted without
+   it, :mod:`dffd.calibrate_check`) is asked for again at the end, and a third time while its
+   two sweeps disagree; the output gives the table's own 1σ per depth (µm of v, mm of depth).
 4. Set ``[lens] file`` to the new table and ``[capture] latency_frames`` to the printed latency.
 
 Exit codes: 0 written, 1 the procedure failed (target not found, non-monotone, camera), 2 usage.
@@ -55,13 +60,22 @@ import math
 import sys
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from dffd.calibrate_fit import CalibrationError, DepthPoint, FocusOptics, fit_table, fit_vertex
+from dffd.calibrate_check import MAX_SWEEPS, TableCheck, check_table
+from dffd.calibrate_fit import (
+    CalibrationError,
+    DepthPoint,
+    FocusOptics,
+    TableFit,
+    fit_table,
+    fit_vertex,
+)
 from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import DEFAULT_FOCUS_MEASURE, frame_cost
@@ -108,7 +122,34 @@ CAMERA_INIT_TIMEOUT_S = 30.0
 # A frame must arrive within this time from a V4L2 device (30 fps; a grabber may stall ~1 s).
 FRAME_TIMEOUT_S = 2.0
 
+# The simulated camera keeps running between placements: a depth placed again is rendered from
+# this many frames further on (new sensor noise; a sweep is ~250 frames).
+SIM_REPEAT_FRAMES = 100_000
+
 Image = npt.NDArray[np.uint8]
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationResult:
+    """The fitted table, its check (σ per depth, what was swept again) and the latency."""
+
+    table: TableFit
+    check: TableCheck | None  # None with fewer depths than a focus model needs
+    latency_frames: int
+    points: tuple[DepthPoint, ...]  # every sweep's point, repeats included
+    repeated: tuple[float, ...]  # depths swept more than once, in the order swept again
+
+    def lines(self) -> list[str]:
+        """The residuals and the uncertainty per depth, the repeats (CLI and lens file)."""
+        out = self.table.residual_lines()
+        if self.check is not None:
+            out += self.check.lines()
+        if self.repeated:
+            out.append(
+                "swept again (predicted beyond the leave-one-out limit by the other depths): "
+                + ", ".join(f"{z:g} m" for z in self.repeated)
+            )
+        return out
 
 
 class Rig(FocusOptics, Protocol):
@@ -191,6 +232,34 @@ async def calibrate(
         points.append(await sharpest(rig, z, settle, measure))
         _LOGGER.info("z = %.3f m: sharpest at %.1f counts", z, points[-1].at)
     return points, latency
+
+
+async def calibrate_table(
+    rig: Rig,
+    depths: list[float],
+    measure: FocusMeasure = DEFAULT_FOCUS_MEASURE,
+    name: str = "calibrated",
+) -> CalibrationResult:
+    """:func:`calibrate`, the table fitted, and the depths its check flags swept again (each at
+    most MAX_SWEEPS times; :mod:`dffd.calibrate_check`) until none is flagged."""
+    points, latency = await calibrate(rig, depths, measure)
+    f_number = getattr(rig, "f_number", None)
+    settle = latency + SETTLE_EXTRA_FRAMES
+    repeated: list[float] = []
+    for _ in range(MAX_SWEEPS - 1):
+        table = fit_table(name, rig, points, f_number)
+        check = check_table(table, rig) if table.fit is not None else None
+        if check is None or not check.repeat:
+            break
+        for z in check.repeat:
+            _LOGGER.info("z = %.3f m: the other depths predict it badly; sweeping it again", z)
+            await rig.place_target(z)
+            points.append(await sharpest(rig, z, settle, measure))
+            repeated.append(z)
+    else:
+        table = fit_table(name, rig, points, f_number)
+        check = check_table(table, rig) if table.fit is not None else None
+    return CalibrationResult(table, check, latency, tuple(points), tuple(repeated))
 
 
 async def sharpest(
@@ -321,6 +390,7 @@ class SimRig:
         self._frame = 0  # frame index of the next render
         self._rig: Any = None  # drivers.sim.rig.SimCamera of the current target placement
         self._z_m = 3.0
+        self._placed: dict[float, int] = {}  # placements so far per depth
 
     def radius_px(self, z_m: float) -> float:
         """The simulated target's image size r = f R / z (pixels) at ``z_m``."""
@@ -360,9 +430,11 @@ class SimRig:
         return sorted(z for z in moved if self.why_unusable(z) is None)
 
     async def place_target(self, z_m: float) -> None:
-        """A fresh simulated session with the target at ``z_m``."""
+        """A fresh simulated session with the target at ``z_m`` (placed again: frames further
+        on, new sensor noise)."""
         self._z_m = z_m
         self._rig = None
+        self._placed[z_m] = self._placed.get(z_m, 0) + 1
 
     async def frame_at(self, counts: int, settle_frames: int) -> Image:
         """The lens is at ``counts`` well before the next exposure (virtual time: no wait)."""
@@ -407,7 +479,7 @@ class SimRig:
                 {"world.trajectory": {"kind": "static", "position_m": (0.0, 0.0, self._z_m)}},
             )
             self._rig = build_sim_camera(cfg, virtual_start_s=0.0, t0=1.0)
-            self._frame = 0
+            self._frame = SIM_REPEAT_FRAMES * (self._placed.get(self._z_m, 1) - 1)
         return self._rig.source, self._rig.state
 
 
@@ -530,17 +602,17 @@ async def _calibrate_and_report(
     rig: Rig, depths: list[float], args: argparse.Namespace, measure: FocusMeasure
 ) -> int:
     try:
-        points, latency = await calibrate(rig, depths, measure)
-        table = fit_table(args.name, rig, points, getattr(rig, "f_number", None))
+        result = await calibrate_table(rig, depths, measure, args.name)
     except CalibrationError as exc:
         print(f"dffd calibrate: {exc}", file=sys.stderr)
         return EXIT_FAILURE
-    lines = table.residual_lines()
+    lines = result.lines()
+    latency = result.latency_frames
     print(f"focus measure: {measure} ([estimators] focus_measure)")
     print("\n".join(lines))
     print(f"capture latency: {latency} frame(s) in flight")
     notes = [f"Focus measure: {measure}.", *lines]
-    text = lens_toml(table.lens, rig.zoom_counts, latency, notes)
+    text = lens_toml(result.table.lens, rig.zoom_counts, latency, notes)
     if args.out is not None:
         args.out.write_text(text, encoding="utf-8")
         print(f"lens table written to {args.out}")
@@ -657,10 +729,12 @@ def _lens_meta(optics: object, zoom_counts: int) -> dict[str, object]:
 
 
 __all__ = [
+    "CalibrationResult",
     "LabRig",
     "Rig",
     "SimRig",
     "calibrate",
+    "calibrate_table",
     "lens_toml",
     "measure_latency",
     "run",

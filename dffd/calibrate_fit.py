@@ -68,6 +68,10 @@ TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smoot
 VERTEX_WINDOW_BLUR_PX = PlanConfig().outer_blur_px
 REFIT_PASSES = 2  # vertex refits in v through the latest model (the second moves < 0.1 µm)
 MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselves
+# Repeated sweeps of one depth (combine_sweeps): with three or more, a sweep whose vertex is more
+# than this many of its σ from the others' median is dropped (a disturbed sweep: the target
+# knocked, a lighting flicker); the combined σ is scaled up by the sweeps' own disagreement.
+SWEEP_OUTLIER_SIGMA = 4.0
 
 
 class CalibrationError(RuntimeError):
@@ -86,6 +90,9 @@ class DepthPoint:
     sigma_counts: float = math.nan  # its σ from the fit (NaN: unknown)
     # the fine sweep: settings (counts), mean cost, σ of the mean (for the refit in v)
     sweep: tuple[tuple[float, float, float], ...] = ()
+    n_sweeps: int = 1  # sweeps of this depth combined into this point (combine_sweeps)
+    spread_counts: float = math.nan  # their vertices' standard deviation (NaN: one sweep)
+    sweeps_chi2: float = math.nan  # their χ² per degree of freedom about the mean (NaN: one)
 
     @property
     def at(self) -> float:
@@ -277,9 +284,7 @@ def fit_focus_model(
     power = 1.0 / np.asarray(z_m, dtype=np.float64)
     lo, hi = counts_span
     u = (np.asarray(counts, dtype=np.float64) - lo) / (hi - lo)
-    # σ of P from the vertex's σ in counts through the local slope of a first straight fit.
-    slope = abs(np.polyfit(u, power, 1)[0])
-    sigma_p = np.maximum(slope * np.asarray(sigma_counts) / (hi - lo), 1e-9)
+    sigma_p = _power_sigma(u, power, np.asarray(sigma_counts, dtype=np.float64), hi - lo)
     used = np.ones(len(u), dtype=bool)
     max_drop = int(MAX_OUTLIER_FRACTION * len(u))
     while True:
@@ -317,6 +322,8 @@ def fit_table(
     v through it, on ± ``window_blur_px`` of blur), tabulated densely; with fewer than
     MIN_MODEL_DEPTHS depths, the points themselves."""
     f, pitch = rig.focal_length_mm, rig.pixel_pitch_mm
+    groups = _by_depth(points)
+    points = [combine_sweeps(g) for g in groups]
     if len(points) < MIN_MODEL_DEPTHS:
         lens = lens_from_points(name, f, pitch, points)
         return TableFit(tuple(points), None, _with_f_number(lens, f_number, rig.zoom_counts))
@@ -329,12 +336,20 @@ def fit_table(
     # true table 481 mm; reference unchanged).
     model = _fit_anchored(points, f, span)
     # Second pass: each vertex refitted in v through the model (the estimator fits its bursts
-    # in v; a parabola in counts leans where the cam curves), then the model refitted.
+    # in v; a parabola in counts leans where the cam curves), then the model refitted. The axis
+    # is the model's polynomial without its residual spline: a spline that follows the first
+    # pass's scattered vertices warps each sweep's axis and feeds the scatter back (reference
+    # optics seed 2: refitted vertices ±1.9 µm off the same sweeps fitted on the true axis, table
+    # 26 mm rms; through the polynomial ±0.2 µm, 5 mm).
     n_f = f_number if f_number is not None else PlanConfig().default_f_number
     per_px = pitch * n_f * 2.0 / f  # mm of v per px of blur radius, per mm of v (plan_burst)
     refit = points
     for _ in range(REFIT_PASSES):
-        refit = [_refit_in_v(p, model.model, window_blur_px * per_px * p.v_mm) for p in points]
+        mapping = dataclasses.replace(model.model, spline=None)
+        refit = [
+            combine_sweeps([_refit_in_v(p, mapping, window_blur_px * per_px * p.v_mm) for p in g])
+            for g in groups
+        ]
         model = _fit_anchored(refit, f, span)
     grid, v = _tabulate(model.model, (min(p.at for p in refit), max(p.at for p in refit)), span)
     lens = Lens(
@@ -355,7 +370,78 @@ def lens_from_points(
     return Lens(name, focal_length_mm, pixel_pitch_mm, tuple(counts), tuple(v))
 
 
+def combine_sweeps(sweeps: list[DepthPoint]) -> DepthPoint:
+    """One point from repeated sweeps of one depth: the inverse-variance mean of their vertices
+    (with three or more, a sweep beyond SWEEP_OUTLIER_SIGMA of the others' median dropped), its
+    σ scaled by their disagreement when they scatter more than their σ says."""
+    if len(sweeps) == 1:
+        return sweeps[0]
+    x = np.array([p.at for p in sweeps])
+    sigma = np.array([p.sigma_counts for p in sweeps])
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, float(np.nanmedian(sigma)))
+    if not np.isfinite(sigma).all():
+        sigma = np.full(len(x), max(float(np.std(x)), 1.0))
+    keep = np.ones(len(x), dtype=bool)
+    if len(x) >= 3:
+        off = np.abs(x - float(np.median(x))) / sigma
+        worst = int(np.argmax(off))
+        keep[worst] = off[worst] <= SWEEP_OUTLIER_SIGMA
+    w = 1.0 / sigma[keep] ** 2
+    mean = float(np.sum(w * x[keep]) / np.sum(w))
+    dof = int(keep.sum()) - 1
+    chi2 = float(np.sum(w * (x[keep] - mean) ** 2)) / dof if dof > 0 else 0.0
+    sigma_mean = math.sqrt(1.0 / float(np.sum(w)) * max(chi2, 1.0))
+    nearest = sweeps[int(np.argmin(np.where(keep, np.abs(x - mean), np.inf)))]
+    return dataclasses.replace(
+        nearest,
+        counts=round(mean),
+        counts_exact=mean,
+        sigma_counts=sigma_mean,
+        n_sweeps=len(sweeps),
+        spread_counts=float(np.std(x, ddof=1)),
+        sweeps_chi2=chi2,
+    )
+
+
+def model_with_structure(
+    points: list[DepthPoint], f: float, span: tuple[float, float], like: FocusModel
+) -> FocusModel:
+    """The anchored focus model of ``like``'s structure (degree, spline or not) through
+    ``points``, without choosing it again: for resampling the table's uncertainty."""
+    counts, z, sigma_counts = _anchored_inputs(points, span)
+    lo, hi = span
+    u = (counts - lo) / (hi - lo)
+    power = 1.0 / z
+    sigma_p = _power_sigma(u, power, sigma_counts, hi - lo)
+    return _build_model(
+        u, power, sigma_p, span, f, degree=like.degree, spline=like.spline is not None
+    )
+
+
 # -- private helpers --------------------------------------------------------------------------
+def _build_model(
+    u: FloatArray,
+    p: FloatArray,
+    s: FloatArray,
+    span: tuple[float, float],
+    f: float,
+    *,
+    degree: int,
+    spline: bool,
+) -> FocusModel:
+    """The weighted polynomial of ``degree`` through (u, p), plus a residual spline if asked."""
+    base = FocusModel(tuple(float(c) for c in _polyfit(u, p, s, degree)), *span, f)
+    return _with_spline(base, u, p, s) if spline else base
+
+
+def _power_sigma(
+    u: FloatArray, power: FloatArray, sigma_counts: FloatArray, width: float
+) -> FloatArray:
+    """σ of P from the vertex's σ in counts through the local slope of a first straight fit."""
+    slope = abs(np.polyfit(u, power, 1)[0])
+    return np.asarray(np.maximum(slope * np.asarray(sigma_counts) / width, 1e-9), dtype=np.float64)
+
+
 def _fit_model(
     u: FloatArray, p: FloatArray, s: FloatArray, span: tuple[float, float], f: float
 ) -> tuple[FocusModel, float]:
@@ -364,9 +450,7 @@ def _fit_model(
     degree, _ = _choose_degree(u, p, s, MAX_BASE_DEGREE)
 
     def build(mask: FloatArray, spline: bool) -> FocusModel:
-        coef = tuple(float(c) for c in _polyfit(u[mask], p[mask], s[mask], degree))
-        base = FocusModel(coef, *span, f)
-        return _with_spline(base, u[mask], p[mask], s[mask]) if spline else base
+        return _build_model(u[mask], p[mask], s[mask], span, f, degree=degree, spline=spline)
 
     best: tuple[float, bool] = (math.inf, False)
     everything = np.ones(len(u), dtype=bool)
@@ -501,13 +585,7 @@ def _fit_anchored(points: list[DepthPoint], f: float, span: tuple[float, float])
     """The focus model through the points and the infinity anchor (the far end of the focus
     range focuses at infinity: the camera's datasheet); the fit's per-depth figures are the
     points' (the anchor's dropped)."""
-    counts = np.array([*(p.at for p in points), span[0]])
-    sigma = np.array([p.sigma_counts for p in points])
-    # a point without a σ (a rig that gave none) weighs as the median of the others
-    fallback = float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else 1.0
-    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, fallback)
-    sigma = np.r_[sigma, float(np.median(sigma))]
-    z = np.array([*(p.z_m for p in points), math.inf])
+    counts, z, sigma = _anchored_inputs(points, span)
     fit = fit_focus_model(counts, z, sigma, f, span)
     return dataclasses.replace(
         fit,
@@ -515,6 +593,28 @@ def _fit_anchored(points: list[DepthPoint], f: float, span: tuple[float, float])
         residual_v_um=fit.residual_v_um[:-1],
         residual_depth_mm=fit.residual_depth_mm[:-1],
     )
+
+
+def _anchored_inputs(
+    points: list[DepthPoint], span: tuple[float, float]
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Counts, depth and σ (counts) of the points and of the infinity anchor (last)."""
+    counts = np.array([*(p.at for p in points), span[0]])
+    sigma = np.array([p.sigma_counts for p in points])
+    # a point without a σ (a rig that gave none) weighs as the median of the others
+    fallback = float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else 1.0
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, fallback)
+    sigma = np.r_[sigma, float(np.median(sigma))]
+    z = np.array([*(p.z_m for p in points), math.inf])
+    return counts, z, sigma
+
+
+def _by_depth(points: list[DepthPoint]) -> list[list[DepthPoint]]:
+    """The points grouped by depth (repeated sweeps of one depth together), in depth order."""
+    groups: dict[float, list[DepthPoint]] = {}
+    for p in points:
+        groups.setdefault(p.z_m, []).append(p)
+    return [groups[z] for z in sorted(groups)]
 
 
 def _refit_in_v(point: DepthPoint, model: Any, half_width_mm: float) -> DepthPoint:

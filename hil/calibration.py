@@ -17,6 +17,7 @@ import asyncio
 import hashlib
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,8 +25,15 @@ from typing import Any
 
 import numpy as np
 
-from dffd.calibrate import DEFAULT_DEPTHS_M, FRAMES_PER_SETTING, SimRig, calibrate, lens_toml
-from dffd.calibrate_fit import VERTEX_WINDOW_BLUR_PX, fit_table
+from dffd.calibrate import (
+    DEFAULT_DEPTHS_M,
+    FRAMES_PER_SETTING,
+    SimRig,
+    calibrate_table,
+    lens_toml,
+)
+from dffd.calibrate_check import REPEAT_SIGMA, TableCheck
+from dffd.calibrate_fit import VERTEX_WINDOW_BLUR_PX
 from dffd.core.lens import Lens
 from dffd.literals import FocusMeasure
 from hil.scenario import Scenario
@@ -34,7 +42,7 @@ from hil.simbuild import sim_camera_config, truth_lens_table
 logger = logging.getLogger(__name__)
 
 # Bump when the procedure changes what it writes: cached tables of another version are refitted.
-PROCEDURE_VERSION = 4
+PROCEDURE_VERSION = 6
 # Depths (m) at which the calibrated table is scored against the true focus curve.
 SCORE_DEPTHS_M = tuple(float(z) for z in np.geomspace(1.5, 12.0, 25))
 
@@ -65,14 +73,14 @@ def calibrated_lens(
     rig = SimRig(config)
     depths = rig.usable_depths(wanted)
     started = time.monotonic()
-    points, latency = asyncio.run(calibrate(rig, depths, measure))
-    table = fit_table(f"calibrated-{name}", rig, points, rig.f_number)
+    result = asyncio.run(calibrate_table(rig, depths, measure, f"calibrated-{name}"))
+    table, latency, check = result.table, result.latency_frames, result.check
     wall_s = time.monotonic() - started
-    lines = table.residual_lines()
+    lines = result.lines()
     toml_path.write_text(lens_toml(table.lens, rig.zoom_counts, latency, lines), "utf-8")
     truth = Lens.from_toml(truth_lens_table(config))
     fit = table.fit
-    report = calibration_error(table.lens, truth) | {
+    report = calibration_error(table.lens, truth, check) | {
         "optics": config.optics.model,
         "seed": seed,
         "focus_measure": measure,
@@ -91,6 +99,9 @@ def calibrated_lens(
             "loo_v_rms_um": fit.loo_rms_v_um,
             "rejected_depths_m": [z for z, ok in zip(depths, fit.used, strict=True) if not ok],
         },
+        "check": None if check is None else _check_report(check),
+        "repeated_depths_m": list(result.repeated),
+        "sweeps": len(result.points),
         "table": str(toml_path),
     }
     json_path.write_text(json.dumps(report, indent=2) + "\n", "utf-8")
@@ -113,10 +124,13 @@ def _cache_key(config: Any, measure: str, depths: tuple[float, ...]) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:8]
 
 
-def calibration_error(calibrated: Lens, truth: Lens) -> dict[str, Any]:
+def calibration_error(
+    calibrated: Lens, truth: Lens, check: TableCheck | None = None
+) -> dict[str, Any]:
     """Error of a calibrated table: at each scoring depth z, the setting that truly focuses z
-    is read back through the calibrated table (the depth a perfect vertex would give)."""
-    errs, rel, dv = [], [], []
+    is read back through the calibrated table (the depth a perfect vertex would give); with the
+    table's ``check``, that error against the table's own σ there."""
+    errs, rel, dv, sig = [], [], [], []
     for z in SCORE_DEPTHS_M:
         counts = truth.counts_for_depth(z)
         v_true = truth.v_from_counts(counts)
@@ -126,8 +140,17 @@ def calibration_error(calibrated: Lens, truth: Lens) -> dict[str, Any]:
         errs.append(z_cal - z_true)
         rel.append((z_cal - z_true) / z_true)
         dv.append((v_cal - v_true) * 1e3)
-    e, r, d = np.asarray(errs), np.asarray(rel), np.asarray(dv)
-    return {
+        sig.append(math.nan if check is None else check.sigma_v_um_at(counts))
+    e, r, d, s = np.asarray(errs), np.asarray(rel), np.asarray(dv), np.asarray(sig)
+    own = {}
+    if check is not None:
+        ratio = np.abs(d) / s
+        own = {
+            # the table's error in units of its own σ: ~1 when the σ is honest
+            "v_err_over_sigma_rms": float(np.sqrt(np.mean(ratio**2))),
+            "within_2_sigma": float(np.mean(ratio <= 2.0)),
+        }
+    return own | {
         "score_depths_m": [SCORE_DEPTHS_M[0], SCORE_DEPTHS_M[-1]],
         "depth_err_rms_m": float(np.sqrt(np.mean(e * e))),
         "depth_err_max_abs_m": float(np.abs(e).max()),
@@ -135,8 +158,29 @@ def calibration_error(calibrated: Lens, truth: Lens) -> dict[str, Any]:
         "v_err_rms_um": float(np.sqrt(np.mean(d * d))),
         "v_err_max_abs_um": float(np.abs(d).max()),
         "per_depth": [
-            {"z_m": z, "depth_err_m": float(x), "v_err_um": float(y)}
-            for z, x, y in zip(SCORE_DEPTHS_M, e, d, strict=True)
+            {"z_m": z, "depth_err_m": float(x), "v_err_um": float(y), "sigma_v_um": float(q)}
+            for z, x, y, q in zip(SCORE_DEPTHS_M, e, d, s, strict=True)
+        ],
+    }
+
+
+def _check_report(check: TableCheck) -> dict[str, Any]:
+    """The table's own uncertainty per calibrated depth (report.json's calibration block)."""
+    return {
+        "repeat_sigma": REPEAT_SIGMA,
+        "misfit_scale": check.misfit_scale,
+        "loo_z_rms": float(np.sqrt(np.mean([d.z_score**2 for d in check.depths]))),
+        "sigma_depth_mm_max": max(d.sigma_depth_mm for d in check.depths),
+        "per_depth": [
+            {
+                "z_m": d.z_m,
+                "sigma_v_um": d.sigma_v_um,
+                "sigma_depth_mm": d.sigma_depth_mm,
+                "loo_v_um": d.loo_v_um,
+                "z_score": d.z_score,
+                "sweeps": d.n_sweeps,
+            }
+            for d in check.depths
         ],
     }
 

@@ -531,13 +531,14 @@ def format_table(report: dict[str, Any]) -> str:
         )
     lines.extend(
         "lens table fitted by dffd calibrate --sim ({} optics, seed {}): depth error rms {} "
-        "mm, max {} mm over {}-{} m; v error rms {} µm".format(
+        "mm, max {} mm over {}-{} m; v error rms {} µm{}".format(
             c["optics"],
             c["seed"],
             _mm(c["depth_err_rms_m"]),
             _mm(c["depth_err_max_abs_m"]),
             *c["score_depths_m"],
             _num(c["v_err_rms_um"], "{:.2f}"),
+            _table_sigma(c),
         )
         for c in (report.get("calibration") or {}).get("tables", [])
     )
@@ -891,3 +892,16 @@ def _git_describe() -> str | None:
     except (OSError, subprocess.TimeoutExpired):
         return None
     return out.stdout.strip() or None
+
+
+def _table_sigma(c: dict[str, Any]) -> str:
+    """The calibrated table's own σ and its depths swept again, when the report has them."""
+    check = c.get("check")
+    if not check:
+        return ""
+    text = "; table's own 1σ ≤ {} mm, its error {} σ rms".format(
+        _num(check["sigma_depth_mm_max"], "{:.1f}"), _num(c.get("v_err_over_sigma_rms"), "{:.1f}")
+    )
+    if c.get("repeated_depths_m"):
+        text += "; swept again at " + ", ".join(f"{z:g}" for z in c["repeated_depths_m"]) + " m"
+    return text

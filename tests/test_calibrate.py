@@ -7,7 +7,16 @@ from pathlib import Path
 
 import pytest
 
-from dffd.calibrate import LabRig, SimRig, calibrate, measure_latency, run, sharpest, vertex
+from dffd.calibrate import (
+    LabRig,
+    SimRig,
+    calibrate,
+    calibrate_table,
+    measure_latency,
+    run,
+    sharpest,
+    vertex,
+)
 from dffd.calibrate_fit import CalibrationError, DepthPoint, lens_from_points
 from dffd.cli.arguments import configure_calibrate
 from dffd.config import load_config
@@ -98,6 +107,9 @@ def test_sim_runs_with_its_own_defaults(
     # the fit's residuals are stated, per depth and overall
     assert printed.count("model residual") == 15
     assert "focus model: P(counts) polynomial of degree" in printed
+    # and the table's own uncertainty per depth
+    assert printed.count("table ± ") == 15
+    assert "table uncertainty (1σ)" in printed
     lens = Lens.from_toml(out)
     assert lens.f_number == pytest.approx(2.9)  # the rig's, for the estimator's burst plan
     # a smooth model tabulated densely over the calibrated range, within 1 % of the truth
@@ -105,6 +117,37 @@ def test_sim_runs_with_its_own_defaults(
     for z in (1.5, 3.0, 7.0, 12.0):
         got = lens.depth_from_v(lens.v_from_counts(TRUTH.counts_for_depth(z)))
         assert got == pytest.approx(z, rel=0.01)
+
+
+# Eight sweeps of ~80 frames (one frame a setting): ~10 s here, several times that when shared.
+@pytest.mark.timeout(180)
+async def test_a_misplaced_depth_is_swept_again_and_the_table_recovers(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The operator first puts the target 0.3 m too far at 4.5 m: the other depths predict that
+    sweep badly, the procedure asks for 4.5 m again; the two sweeps disagree, a third decides,
+    and the table is right there."""
+    monkeypatch.setattr("dffd.calibrate.FRAMES_PER_SETTING", 1)
+    placed: list[float] = []
+
+    class Misplaced(SimRig):
+        async def place_target(self, z_m: float) -> None:
+            first = z_m == 4.5 and z_m not in placed
+            placed.append(z_m)
+            await super().place_target(4.8 if first else z_m)
+
+    depths = [2.0, 3.0, 4.5, 7.0, 10.0, 14.0]
+    result = await calibrate_table(Misplaced(reference_camera_file()), depths)
+    assert placed == [*depths, 4.5, 4.5]
+    assert result.repeated == (4.5, 4.5)
+    assert result.check is not None
+    assert result.check.repeat == ()
+    at_45 = next(d for d in result.check.depths if d.z_m == 4.5)
+    assert at_45.n_sweeps == 3
+    lens = result.table.lens
+    got = lens.depth_from_v(lens.v_from_counts(TRUTH.counts_for_depth(4.5)))
+    assert got == pytest.approx(4.5, rel=0.01)  # the 0.3 m misplacement is outvoted
+    assert any("swept again" in line for line in result.lines())
 
 
 async def test_a_target_too_large_for_the_tracker_is_named_as_such() -> None:

@@ -1,0 +1,209 @@
+"""How far a fitted lens table can be trusted, and which depths to sweep again (dffd calibrate).
+
+Per calibrated depth (:func:`check_table`):
+
+* the table's own σ: a parametric bootstrap of the focus model — each depth's vertex moved by
+  its σ, the model of the same structure (degree, spline) refitted
+  (:func:`dffd.calibrate_fit.model_with_structure`), the spread of v at each setting;
+* the leave-one-out residual: the depth's measured v against the table fitted without it, and
+  that in units of the two σ combined (a z-score).
+
+A depth the others predict worse than :data:`REPEAT_SIGMA` σ is swept again (a lab would
+re-measure it; :func:`dffd.calibrate.calibrate_table`): once, and again (up to
+:data:`MAX_SWEEPS`) while its sweeps disagree beyond their σ — sweep noise, which a third sweep
+outvotes (:func:`dffd.calibrate_fit.combine_sweeps`); sweeps that agree with each other but not
+with the table say the model misses something between the depths (a cam ripple: more depths,
+not more sweeps). When the leave-one-out z-scores' RMS exceeds 1 the
+table's σ is scaled up by it: the sweeps' own σ does not cover what the model misses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from dffd.calibrate_fit import (
+    DepthPoint,
+    FocusModel,
+    FocusOptics,
+    TableFit,
+    model_with_structure,
+)
+
+FloatArray = npt.NDArray[np.float64]
+
+# A depth whose leave-one-out residual exceeds this many σ is swept again. Chosen on the
+# reference optics (paper-circle's camera, seeds 1-3, peak_gradient): once the refit's axis no
+# longer follows the first pass's scatter the z-scores there stay within ±2.5 (docs/estimation.md
+# §10); 3 leaves room for the tails of 15 depths and still catches a sweep 1 µm of v off.
+REPEAT_SIGMA = 3.0
+MAX_SWEEPS = 3  # sweeps of one depth at most (the first and two repeats)
+# Repeated sweeps of one depth disagree when their χ² per degree of freedom exceeds this: more
+# scatter than their σ (a 95 % point of χ² with 1-2 degrees of freedom is 3.0-3.8).
+SWEEPS_DISAGREE_CHI2 = 4.0
+# Depths set aside as suspects stop while this many remain to check them against (a cubic and
+# its leave-one-out need five).
+MIN_CHECKED_DEPTHS = 5
+BOOTSTRAP_SAMPLES = 40  # resampled models (the σ's own relative error ~ 1/sqrt(2·40) = 11 %)
+BOOTSTRAP_SEED = 0  # fixed: the same sweeps give the same table σ
+
+
+@dataclass(frozen=True, slots=True)
+class DepthCheck:
+    """One calibrated depth: the table's σ there and how well the other depths predict it."""
+
+    z_m: float
+    sigma_v_um: float  # the table's 1σ at this depth (scaled by misfit_scale), µm of v
+    sigma_depth_mm: float  # the same in depth
+    loo_v_um: float  # measured v − the table fitted without this depth
+    z_score: float  # loo_v_um over the vertex's and the table's σ combined (unscaled)
+    n_sweeps: int
+    spread_v_um: float  # the sweeps' vertices' standard deviation (NaN: one sweep)
+    sweeps_chi2: float  # their χ² per degree of freedom (NaN: one sweep)
+
+
+@dataclass(frozen=True, slots=True)
+class TableCheck:
+    """The table's uncertainty per depth and over its settings; the depths to sweep again."""
+
+    depths: tuple[DepthCheck, ...]
+    misfit_scale: float  # RMS leave-one-out z-score when above 1 (else 1): the σ's scale-up
+    grid_counts: tuple[float, ...]  # the table's settings …
+    grid_sigma_v_um: tuple[float, ...]  # … and its 1σ there (scaled), µm of v
+    repeat: tuple[float, ...]  # depths (m) to sweep again
+
+    def sigma_v_um_at(self, counts: float) -> float:
+        """The table's 1σ (µm of v) at ``counts`` (interpolated over its settings)."""
+        return float(np.interp(counts, self.grid_counts, self.grid_sigma_v_um))
+
+    def lines(self) -> list[str]:
+        """The uncertainty per depth and the verdict, for the CLI and the lens file."""
+        out = []
+        for d in self.depths:
+            line = (
+                f"z = {d.z_m:6.2f} m  table ± {d.sigma_v_um:.3f} µm of v "
+                f"(± {d.sigma_depth_mm:.1f} mm of depth, 1σ); leave-one-out "
+                f"{d.loo_v_um:+6.3f} µm ({d.z_score:+.1f} σ)"
+            )
+            if d.n_sweeps > 1:
+                line += f"; {d.n_sweeps} sweeps, spread {d.spread_v_um:.3f} µm"
+                if d.sweeps_chi2 > SWEEPS_DISAGREE_CHI2:
+                    line += " (they disagree: sweep noise)"
+            if d.z_m in self.repeat:
+                line += "  SWEEP AGAIN"
+            out.append(line)
+        rms = math.sqrt(float(np.mean([d.z_score**2 for d in self.depths])))
+        verdict = (
+            f"table uncertainty (1σ): {min(d.sigma_depth_mm for d in self.depths):.1f}-"
+            f"{max(d.sigma_depth_mm for d in self.depths):.1f} mm of depth over the calibrated "
+            f"depths; leave-one-out z-scores rms {rms:.2f}"
+        )
+        if self.misfit_scale > 1.0:
+            verdict += (
+                f" > 1: σ scaled up ×{self.misfit_scale:.1f} (the model misses more than the "
+                "sweeps' noise between the depths; if repeated sweeps agree, add depths there)"
+            )
+        out.append(verdict)
+        return out
+
+
+def check_table(table: TableFit, rig: FocusOptics) -> TableCheck:
+    """The table's σ per depth (bootstrap), the leave-one-out z-scores and the depths to sweep
+    again; ``table`` must carry a model (at least MIN_MODEL_DEPTHS depths)."""
+    if table.fit is None:
+        raise ValueError("check_table needs a table fitted with a focus model")
+    f = rig.focal_length_mm
+    span = (float(rig.focus_range[0]), float(rig.focus_range[1]))
+    like = table.fit.model
+    points = list(table.points)
+    at = np.array([p.at for p in points])
+    sigma_counts = np.array([p.sigma_counts for p in points])
+    sigma_counts = np.where(
+        np.isfinite(sigma_counts) & (sigma_counts > 0), sigma_counts, np.nanmedian(sigma_counts)
+    )
+    grid = np.asarray(table.lens.focus_counts, dtype=np.float64)
+    sigma_grid = _bootstrap_sigma_v_um(points, sigma_counts, f, span, like, counts=np.r_[grid, at])
+    sigma_table = sigma_grid[len(grid) :]
+    slope = np.abs(np.gradient(like.v_mm(grid), grid))  # mm of v per count
+    slope_at = np.interp(at, grid, slope)
+    sigma_vertex = sigma_counts * slope_at * 1e3
+    sigma_both = np.sqrt(sigma_vertex**2 + sigma_table**2)
+    # One bad depth bends every fit it is in, so every other depth's leave-one-out residual too
+    # (6 depths, one placed 0.3 m off: all six were flagged). The worst beyond REPEAT_SIGMA is
+    # set aside and the others checked without it, until none is beyond.
+    aside = np.zeros(len(points), dtype=bool)
+    while True:
+        loo = _leave_one_out_um(points, aside, f, span, like)
+        z = loo / sigma_both
+        worst = int(np.argmax(np.where(aside, -np.inf, np.abs(z))))
+        if abs(z[worst]) <= REPEAT_SIGMA or (~aside).sum() <= MIN_CHECKED_DEPTHS:
+            break
+        aside[worst] = True
+    scale = max(1.0, math.sqrt(float(np.mean(z**2))))
+    depths = []
+    repeat = []
+    for i, p in enumerate(points):
+        v = p.v_mm
+        sigma_v = float(sigma_table[i]) * scale
+        dz_dv = f * f / (v - f) ** 2  # |dz/dv| of the thin lens z = f v / (v − f)
+        spread = p.spread_counts * slope_at[i] * 1e3
+        chi2 = p.sweeps_chi2
+        depths.append(
+            DepthCheck(
+                p.z_m, sigma_v, sigma_v * 1e-3 * dz_dv, float(loo[i]), float(z[i]), p.n_sweeps,
+                float(spread), chi2,
+            )
+        )  # fmt: skip
+        # once swept again, the depth's σ carries its sweeps' disagreement (combine_sweeps) and
+        # its z-score shrinks: sweeps that still disagree ask for another, whatever the z-score
+        flagged = bool(aside[i]) if p.n_sweeps == 1 else chi2 > SWEEPS_DISAGREE_CHI2
+        if flagged and p.n_sweeps < MAX_SWEEPS:
+            repeat.append(p.z_m)
+    return TableCheck(
+        tuple(depths),
+        scale,
+        tuple(float(c) for c in grid),
+        tuple(float(s) * scale for s in sigma_grid[: len(grid)]),
+        tuple(repeat),
+    )
+
+
+# -- private helpers --------------------------------------------------------------------------
+def _leave_one_out_um(
+    points: list[DepthPoint],
+    aside: npt.NDArray[np.bool_],
+    f: float,
+    span: tuple[float, float],
+    like: FocusModel,
+) -> FloatArray:
+    """Each depth's v less the model fitted without it and without the depths set ``aside``."""
+    out = []
+    for i, p in enumerate(points):
+        others = [q for j, q in enumerate(points) if j != i and not aside[j]]
+        out.append((p.v_mm - float(model_with_structure(others, f, span, like).v_mm(p.at))) * 1e3)
+    return np.asarray(out, dtype=np.float64)
+
+
+def _bootstrap_sigma_v_um(
+    points: list[DepthPoint],
+    sigma_counts: FloatArray,
+    f: float,
+    span: tuple[float, float],
+    like: FocusModel,
+    *,
+    counts: FloatArray,
+) -> FloatArray:
+    """σ (µm) of the model's v at ``counts`` over models refitted to vertices moved by their σ."""
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    samples = []
+    for _ in range(BOOTSTRAP_SAMPLES):
+        moved = [
+            dataclasses.replace(p, counts_exact=p.at + float(rng.normal()) * s)
+            for p, s in zip(points, sigma_counts, strict=True)
+        ]
+        samples.append(model_with_structure(moved, f, span, like).v_mm(counts))
+    return np.asarray(np.std(np.array(samples), axis=0, ddof=1) * 1e3, dtype=np.float64)
