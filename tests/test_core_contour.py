@@ -49,6 +49,30 @@ def test_acquires_the_disc_among_clutter_from_an_roi() -> None:
     assert find_target(np.full((H, W), 30, np.uint8)) is None
 
 
+@pytest.mark.parametrize("radius", [8.0, 40.0, 120.0])
+def test_the_coarse_whole_frame_search_finds_the_disc_and_the_start_refines_it(
+    radius: float,
+) -> None:
+    """downscale=2 (the pipeline's whole-frame search): the polygon lands on the full-size
+    frame's pixel centres, and ContourTracker.start refines it as it does a full-size one."""
+    rng = np.random.default_rng(3)
+    img = render_disc(W, H, (301.3, 217.8), radius, 0.0, rng=rng)
+    cv2.rectangle(img, (20, 20), (25, 25), 255, -1)  # a speck below the minimum size
+    coarse = find_target(img, None, 6.0, downscale=2)
+    fine = find_target(img, None, 6.0)
+    assert coarse is not None
+    assert fine is not None
+    assert np.allclose(coarse.mean(axis=0), (301.3, 217.8), atol=1.0)
+    assert radius_of(coarse) == pytest.approx(radius, abs=1.5)
+    starts = []
+    for poly in (coarse, fine):
+        tracker = ContourTracker(TrackerConfig())
+        assert tracker.start(img, poly, 0.0)
+        starts.append(tracker.points)
+    assert radius_of(starts[0]) == pytest.approx(radius_of(starts[1]), abs=0.05)
+    assert np.allclose(starts[0].mean(axis=0), starts[1].mean(axis=0), atol=0.05)
+
+
 @pytest.mark.parametrize("bgr", [False, True])
 def test_tracks_a_moving_growing_disc_with_subpixel_size(bgr: bool) -> None:
     rng = np.random.default_rng(1)

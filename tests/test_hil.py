@@ -190,7 +190,9 @@ def test_record_writes_a_replayable_recording(short_run: tuple[Path, dict]) -> N
     truth = reader.truth
     assert truth is not None
     # The 3D truth in the world frame beside the camera-frame depth: the disc rests at (0, 0, 2).
-    np.testing.assert_allclose(truth.z_m, 2.0, atol=1e-6)
+    # The camera-frame depth moves with the head: a centring move of a few tenths of a degree
+    # (the first, blurred frames' centroids scatter by ~1 px) changes it by ~10 µm.
+    np.testing.assert_allclose(truth.z_m, 2.0, atol=1e-4)
     np.testing.assert_allclose(truth.extra["z_world_m"], 2.0, atol=1e-6)
     np.testing.assert_allclose(truth.extra["x_world_m"], 0.0, atol=1e-6)
     for name in ("vx_world_m_s", "az_world_m_s2", "angular_speed_rad_s"):

@@ -82,6 +82,10 @@ SIZE_EDGE_WIDTHS = 3.0
 # A size off the track is a jump only within this time of the last used size (s): further, the
 # filtered rate's prediction is too uncertain (a rolling bracket's track frames are ~0.2 s apart).
 SIZE_JUMP_MAX_GAP_S = 0.5
+# The whole-frame acquisition search runs on a copy this many times smaller per axis (area
+# averaged): it was ~70 % of an acquisition frame's CPU at full size on 640×480 (blur, Otsu and
+# contours over the whole frame); ContourTracker.start refines the coarse polygon at full size.
+ACQUIRE_DOWNSCALE = 2
 
 
 @dataclass(frozen=True, slots=True)
@@ -339,9 +343,13 @@ class Pipeline:
     # -- acquisition --------------------------------------------------------------------------
     def _try_acquire(self, frame: Frame) -> bool:
         img = frame.image
-        gray: npt.NDArray[np.uint8] = np.ascontiguousarray(
-            img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), dtype=np.uint8
-        )
+        gray: npt.NDArray[np.uint8] = img
+        if img.ndim != 2 or img.dtype != np.uint8 or not img.flags.c_contiguous:
+            gray = np.ascontiguousarray(
+                img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), dtype=np.uint8
+            )
+        # (the frame's own array when it is gray already: the tracker then reuses the gradient
+        # it started the contour on for the update of the same frame)
         rois: list[tuple[int, int, int, int] | None] = []
         if self._pending_roi is not None:
             rois.append(self._pending_roi)
@@ -359,7 +367,9 @@ class Pipeline:
                 self._frames_since_search = 0
                 rois.append(None)
         for roi in rois:
-            poly = find_target(gray, roi, self._tracker.config.min_radius_px)
+            # the whole frame is searched on a coarser copy (ACQUIRE_DOWNSCALE), an ROI as is
+            scale = 1 if roi is not None else ACQUIRE_DOWNSCALE
+            poly = find_target(gray, roi, self._tracker.config.min_radius_px, downscale=scale)
             if poly is not None and self._tracker.start(gray, poly, frame.t):
                 logger.info("target acquired at frame %d (roi=%s)", frame.index, roi)
                 self._pending_roi = None
