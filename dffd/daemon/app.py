@@ -380,6 +380,8 @@ class Daemon:
                     await source.start()
                     if cfg.target.roi is None:  # automatic acquisition: sweep if not in view
                         self.scheduler.arm_search(time.monotonic())
+                    else:  # the ROI is in this view: a sweep only after a sighting and a loss
+                        self.scheduler.disarm_search()
                     self._results_failed = asyncio.get_running_loop().create_future()
                     tasks = [
                         group.create_task(self._capture_loop(source), name="capture"),
