@@ -76,6 +76,10 @@ def test_a_first_depth_with_a_huge_sigma_waits_for_a_precise_one() -> None:
     assert not gate.passes(vague)
     gate.on_measurement(replace(BRACKETED, z_m=7.73, sigma_m=0.009))
     assert gate.passes(replace(ESTIMATE, z_m=7.62, sigma_m=0.2))
+    # The filters' start-up σ of a good first burst passes at once (static world: 26 %).
+    gate = FirstDepthGate()
+    gate.on_measurement(replace(BRACKETED, z_m=3.974, sigma_m=0.004))
+    assert gate.passes(replace(ESTIMATE, z_m=3.972, sigma_m=1.047))
     # A σ that never shrinks does not hide the depths for ever either.
     gate = FirstDepthGate()
     for _ in range(FIRST_DEPTH_FORCE_BURSTS - 1):
