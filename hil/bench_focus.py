@@ -33,7 +33,9 @@ from drivers.sim.config import load_sim_camera_config, with_overrides
 from drivers.sim.resources import reference_camera_file
 from drivers.sim.source import SimFrameSource, camera_state_for
 
-MEASURES = ("peak_gradient", "edge_variance")
+# debiased_peak: its frame cost is the edge moment on the wider window it debiases the peak
+# gradient against (focus.DEBIAS_WINDOW_SIGMAS); the debiased peak settles where that moment does
+MEASURES = ("peak_gradient", "edge_variance", "debiased_peak")
 EXTRA: dict[str, object] = {}
 
 
@@ -113,10 +115,13 @@ def measure(
                 assert tracker.start(gray, pts, 0.0)
                 obs = tracker.update(gray, 0.0, "similarity")
                 for m in MEASURES:
+                    # None: the blur overflows the moment's window on the normal lines
                     c = frame_cost(obs, m)  # type: ignore[arg-type]
-                    assert c is not None, m
-                    costs[m].append(c)
+                    costs[m].append((math.nan, math.nan) if c is None else c)
             for m in MEASURES:
+                if any(math.isnan(c[0]) for c in costs[m]):
+                    offsets[m].append((delta, math.nan, rep))  # counted as rejected
+                    continue
                 fit = fit_burst(
                     [v_c - h, v_c, v_c + h],
                     [c[0] for c in costs[m]],

@@ -153,9 +153,7 @@ class BurstAssembler:
     ) -> BurstSample | None:
         """The frame's cost of the configured measure (and of (2) as its fallback), or None."""
         trim = self.trim_fraction
-        measure: FocusMeasure = (
-            "edge_variance" if self.focus_measure == "debiased_peak" else self.focus_measure
-        )
+        measure: FocusMeasure = self.focus_measure
         cost = frame_cost(obs, measure, trim)
         peak = None if measure == "peak_gradient" else frame_cost(obs, "peak_gradient", trim)
         if cost is None and peak is None:

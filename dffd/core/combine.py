@@ -10,8 +10,9 @@ difference over many bursts measures the peak gradient's bias: ``d = x_pg − x_
 squares with forgetting (:class:`PeakBias`). Each burst's measurement is the peak gradient's
 vertex less that bias (its variance plus the bias fit's): the edge moment's bias (none by
 construction) at the peak gradient's noise. No constant of either optics model enters: the
-prior is diffuse on ``b0`` and weak on ``b1``, and the window is the noise estimates'
-(:mod:`dffd.core.noise`).
+prior is diffuse on ``b0`` and by default holds ``b1`` at 0 (:class:`CombineConfig`), and the
+window is the noise estimates' (:mod:`dffd.core.noise`). The edge moment it is debiased against
+has a wider window than the ``edge_variance`` measure's (``focus.DEBIAS_WINDOW_SIGMAS``).
 
 Pure and deterministic; no clock.
 """
@@ -33,10 +34,13 @@ class CombineConfig:
     window_bursts: float = 60.0
     # Prior σ of the offset b0 (half-brackets): diffuse — §8 measured up to 0.06 h.
     prior_offset_h: float = 1.0
-    # Prior σ of the slope error b1 (h per h): the peak gradient's vertex moved 0.92–1.09× the
-    # true offset on both optics (§8); in closed loop the offsets barely spread, so the slope is
-    # weakly observable and the prior keeps it near 0.
-    prior_slope: float = 0.1
+    # Prior σ of the slope error b1 (h per h). 0: the fit is the offset b0 alone. In closed loop
+    # the offsets spread ±0.01–0.04 h, so b1 is weakly observable, and its term b1·x_ev carries
+    # the edge moment's per-burst noise into every measurement: with 0.1 the debiased vertex was
+    # 1.5–3× noisier than the peak gradient's on the reference optics (paper-circle seed 1,
+    # simulator's table: raw z_m ss std 26.0 against 17.4 mm; with 0: 17.1; docs/estimation.md
+    # §13). Chosen on the reference optics.
+    prior_slope: float = 0.0
 
 
 class PeakBias:

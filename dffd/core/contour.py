@@ -96,17 +96,19 @@ class EdgeMoments(NamedTuple):
     cost: tuple[float, float] | None  # (mass-weighted trimmed mean, its standard error)
 
 
-def edge_moments(samples: EdgeSamples) -> EdgeMoments:
+def edge_moments(samples: EdgeSamples, window_sigmas: float | None = None) -> EdgeMoments:
     """Second moment of the edge-derivative profile along every inlier normal, and their pool.
 
     Blur variances add under convolution whatever the PSF, so the pooled moment grows as
-    ``σ0² + c (v0 − v)²`` (see ``dffd.core.kernels.edge_moments`` for the adapted window).
+    ``σ0² + c (v0 − v)²`` (see ``dffd.core.kernels.edge_moments`` for the adapted window of
+    ``window_sigmas`` pooled spreads; None: EDGE_WINDOW_SIGMAS).
     """
+    k = EDGE_WINDOW_SIGMAS if window_sigmas is None else window_sigmas
     n = len(samples.offset)
     var, mass, pooled = np.empty(n), np.empty(n), np.empty(2)
     kernel_dispatch.current().edge_moments(
         samples.bx, samples.by, samples.normals, samples.polarity, samples.search_px,
-        samples.offset, samples.inlier, samples.sigma2_hint, EDGE_WINDOW_SIGMAS, EDGE_WINDOW_MIN_PX,
+        samples.offset, samples.inlier, samples.sigma2_hint, k, EDGE_WINDOW_MIN_PX,
         EDGE_WINDOW_PASSES, samples.trim_fraction, var, mass, pooled,
     )  # fmt: skip
     cost = (float(pooled[0]), float(pooled[1])) if math.isfinite(pooled[0]) else None
@@ -129,9 +131,10 @@ class BoundaryObservation:
     # into moments only when a frame's focus cost is wanted (edge_moments)
     edge_samples: EdgeSamples | None = None
 
-    def edge_moments(self) -> EdgeMoments | None:
-        """The edge second moments of this frame and their focus cost (computed on each call)."""
-        return None if self.edge_samples is None else edge_moments(self.edge_samples)
+    def edge_moments(self, window_sigmas: float | None = None) -> EdgeMoments | None:
+        """The edge second moments of this frame and their focus cost (computed on each call;
+        ``window_sigmas``: the window in pooled edge spreads, None: the default)."""
+        return None if self.edge_samples is None else edge_moments(self.edge_samples, window_sigmas)
 
 
 class ContourTracker:

@@ -23,6 +23,14 @@ REASON_OK = "ok"
 
 DEFAULT_FOCUS_MEASURE: FocusMeasure = "edge_variance"
 
+# Window (in pooled edge spreads) of the edge moment that ``debiased_peak`` debiases the peak
+# gradient against: wider than the ``edge_variance`` measure's 3, because a window of a few
+# spreads cuts more of an asymmetric PSF's halo on one side of focus than on the other (a lean
+# of the closed loop's fixed point), and the debiasing averages the moment's extra noise away.
+# Chosen on the synthetic edges (dffd.core.synthetic: Gaussian, disc, aberrated kernel) and the
+# reference optics; reported on the simulator's aberrated optics (docs/estimation.md §13).
+DEBIAS_WINDOW_SIGMAS = 4.0
+
 
 class _Moments(Protocol):
     @property
@@ -39,7 +47,7 @@ class FrameFocus(Protocol):
         """Per-normal max ||∇I||² (NaN where no edge)."""
         ...
 
-    def edge_moments(self) -> _Moments | None:
+    def edge_moments(self, window_sigmas: float | None = None) -> _Moments | None:
         """The pooled edge second moments of the frame (computed on each call)."""
         ...
 
@@ -146,11 +154,14 @@ def frame_cost(
     """Focus cost (g, σ_g) of one tracked frame with the chosen measure, or None.
 
     ``edge_variance``: the edge moments pooled with the tracker's own ``trim_fraction`` (same
-    pooling as :func:`edge_variance_cost`, in its compiled kernel); ``peak_gradient``: (2).
+    pooling as :func:`edge_variance_cost`, in its compiled kernel); ``debiased_peak``: the same
+    moments on the wider window the peak gradient is debiased against (DEBIAS_WINDOW_SIGMAS);
+    ``peak_gradient``: (2).
     """
     if measure == "peak_gradient":
         return focus_cost(obs.peak_sq, trim_fraction)
-    moments = obs.edge_moments()
+    window = DEBIAS_WINDOW_SIGMAS if measure == "debiased_peak" else None
+    moments = obs.edge_moments(window)
     return None if moments is None else moments.cost
 
 
