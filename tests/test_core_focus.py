@@ -180,7 +180,7 @@ def _closed_loop_lean(psf: str, measure: str, repeats: int) -> float:
 def test_debiasing_moment_has_no_lean_on_an_aberrated_psf() -> None:
     # The lean an aberrated PSF adds over a Gaussian one (the same noise draws: the difference
     # is the PSF's). The edge moment on 3 spreads cuts more of the halo side's tail (+0.0069 h;
-    # the peak gradient: +0.081 h); the debiasing moment's 4 spreads do not (−0.0001 h).
+    # the peak gradient: +0.081 h); the debiasing moment's 3.5 spreads do not (+0.0009 h).
     def extra_lean(measure: str) -> float:
         return _closed_loop_lean("aberrated", measure, 8) - _closed_loop_lean(
             "gaussian", measure, 8
