@@ -11,6 +11,7 @@ import pytest
 from dffd.consistency import consistency_stats, in_band
 from dffd.core.filters import CF1, CF2, DepthKF, KFNoise, LPVGains, LPVObserver, cf2_gains
 from dffd.core.noise import (
+    DriftRate,
     InnovationScale,
     NoiseAdaptConfig,
     SlowErrors,
@@ -184,3 +185,24 @@ def test_consistency_ratio_converges_to_the_innovations_excess(ratio: float) -> 
         history.append(unc.consistency.scale)
     late = float(np.mean(history[200:]))
     assert late == pytest.approx(max(ratio, 1.0), rel=0.3)
+
+
+def test_drift_rate_finds_a_wandering_size_invariant_and_none_in_white_noise() -> None:
+    """Size measurements whose ln R wanders as a random walk of rate q: the estimate is near q;
+    white measurement errors (with the shared-frame correlation of rolling bursts): q̂ ~ 0.
+    The noise level is unknown to the estimator (stated σ half the true one)."""
+    rng = np.random.default_rng(5)
+    cfg = NoiseAdaptConfig(window_bursts=150.0)
+    q_true, sigma, dt = 4e-6, 1e-3, 0.45
+    wander, white = DriftRate(cfg), DriftRate(cfg)
+    assert wander.rate is None
+    walk, ends = 0.0, rng.normal(0.0, sigma * math.sqrt(2.0), 152)
+    for k in range(150):
+        walk += rng.normal(0.0, math.sqrt(q_true * dt))
+        eps = 0.5 * (ends[k] + ends[k + 1])
+        wander.update(k * dt, math.log(0.04) + walk + eps, 0.5 * sigma)
+        white.update(k * dt, math.log(0.04) + eps, 0.5 * sigma)
+    assert wander.rate is not None
+    assert white.rate is not None
+    assert wander.rate == pytest.approx(q_true, rel=0.5)
+    assert white.rate < 0.1 * q_true

@@ -126,7 +126,7 @@ class EstimatorBank:
             * model_sigma_v_mm(m.v_mm, m.v_hat_mm, cfg.focus_measure),
         )
         # the lean τ̂ of the vertex, estimated online on the size invariant (noise.py)
-        tau = self.unc.observe_size(math.log(z_m * s_b), rate, sigma_z / z_m, m.frame_indices)
+        tau = self.unc.observe_size(math.log(z_m * s_b), rate, sigma_z / z_m, m.frame_indices, m.t)
         s_b *= math.exp(rate * tau)
         size_m = z_m * s_b
         self.size_meas = size_m

@@ -29,8 +29,11 @@ import functools
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Literal
 
 from scipy import stats
+
+ProcessNoise = Literal["data", "kf"]
 
 # The burst's parabola is a model of the cost: its vertex moves by ``slope × `` the true offset
 # of the sharp setting from the bracket centre, so a vertex far from the centre carries a model
@@ -72,6 +75,14 @@ class NoiseAdaptConfig:
     # rolling bursts, the scale the filters average over) and the bound of the factor.
     slow_error_lags: int = 10
     slow_error_max: float = 25.0
+    # Process noise of the σ propagation (DriftRate): lags of the size invariant's variogram
+    # (2 .. this many bursts, ~9 s: the slow filters' time constant) and the bursts it needs.
+    drift_max_lag: int = 20
+    drift_min_bursts: int = 30
+    # "data": the σ propagation's process noise is DriftRate's once it has drift_min_bursts
+    # (the Kalman filter's σ_ρ, σ_b until then); "kf": the Kalman filter's throughout (before
+    # docs/estimation.md §14). The Kalman filter itself keeps its own noise either way.
+    process_noise: ProcessNoise = "data"
 
 
 def student_factor(dof: float) -> float:
@@ -166,6 +177,55 @@ class SlowErrors:
         model = gamma[0] * (1.0 + 2.0 * corr * (1.0 - 1.0 / (lags + 1)))
         self.factor = min(max(lrv / model, 1.0), c.slow_error_max)
         return self.factor
+
+
+class DriftRate:
+    """Random-walk rate ``q`` (1/s) of the size invariant ``ln(z s)``: the process noise of every
+    estimator's error, estimated from the data.
+
+    On a rigid target ``x_k = ln(z_m s(t_b))`` is ``ln R`` plus the measurement's error whatever
+    the target does; anything that makes the model ``ż = −ρ z (+ b)`` drift from the truth (a
+    size bias that changes with depth or blur, a non-rigid target, a disturbance ``b``) makes
+    ``ln R`` wander, and a wander of ``ln R`` at rate ``q`` is a depth random walk of variance
+    ``q z² dt``. Over the window, pairs of size measurements ``j`` bursts apart (``j ≥ 2``: no
+    shared frame) give ``E[(x_k − x_{k−j})²] = λ (σ_k² + σ_{k−j}²) + q (t_k − t_{k−j})``; least
+    squares on both coefficients (so neither the stated σ's scale nor λ enters) gives ``q̂``,
+    clipped at 0. Until ``drift_min_bursts`` have been seen ``q̂`` is None.
+    """
+
+    def __init__(self, config: NoiseAdaptConfig) -> None:
+        self.config = config
+        self._x: deque[tuple[float, float, float]] = deque(maxlen=int(config.window_bursts))
+        self.rate: float | None = None
+
+    def update(self, t: float, log_size: float, sigma_rel: float) -> float | None:
+        """One size measurement at time ``t`` (s): ln and relative σ; returns ``q̂`` (1/s)."""
+        c = self.config
+        if not (sigma_rel > 0 and math.isfinite(log_size) and math.isfinite(t)):
+            return self.rate
+        self._x.append((t, log_size, sigma_rel * sigma_rel))
+        n = len(self._x)
+        if n < c.drift_min_bursts:
+            return self.rate
+        # normal equations of d² = λ v + q Δt over the pairs (sums on floats: n·J ≈ 1200 terms)
+        svv = svt = stt = svd = std = 0.0
+        xs = list(self._x)
+        for k in range(2, n):
+            tk, xk, vk = xs[k]
+            for j in range(2, min(c.drift_max_lag, k) + 1):
+                tj, xj, vj = xs[k - j]
+                d2 = (xk - xj) ** 2
+                v, dt = vk + vj, tk - tj
+                svv += v * v
+                svt += v * dt
+                stt += dt * dt
+                svd += v * d2
+                std += dt * d2
+        det = svv * stt - svt * svt
+        if not det > 0:
+            return self.rate
+        self.rate = max((svv * std - svt * svd) / det, 0.0)
+        return self.rate
 
 
 class TimeOffset:

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from dffd.core.filters import KFNoise, LPVGains, Mat2, Vec2, exp_input2_floats
 from dffd.core.noise import (
+    DriftRate,
     InnovationScale,
     NoiseAdaptConfig,
     SlowErrors,
@@ -147,6 +148,7 @@ class Uncertainty:
         self.consistency = InnovationScale(replace(adapt, scale_min=1.0))
         self.offset = TimeOffset(adapt)
         self.slow = SlowErrors(adapt)
+        self.drift = DriftRate(adapt)
         self._last_size: tuple[float, float, tuple[int, ...]] | None = None
         self._cf1_k = cf1_k
         self._cf2 = cf2_gains
@@ -215,9 +217,7 @@ class Uncertainty:
         """Propagate every error covariance over one step of the filters."""
         if not self.started or dt <= 0:
             return
-        n = self.noise
-        qz = (n.sigma_rho * z) ** 2 * dt
-        qb = n.sigma_b**2 * dt
+        qz, qb = self._process_noise(z, dt)
         q2 = (qz, 0.0, 0.0, qb)
         lam = -rho
         # CF1: ẑ' = −k ẑ + k y + ψ
@@ -240,8 +240,25 @@ class Uncertainty:
         q_kf = (qz + qb * dt * dt / 3.0, qb * dt / 2.0, qb * dt / 2.0, qb)
         self.errors["kf"].propagate((ratio, gk, 0.0, 1.0), (0.0, 0.0), ratio, q_kf)
 
+    def _process_noise(self, z: float, dt: float) -> tuple[float, float]:
+        """(q_z, q_b) over ``dt`` at depth ``z``: a random walk of ``ln z`` at the size
+        invariant's drift rate (DriftRate) once it is estimated; the Kalman filter's
+        (σ_ρ, σ_b) before that, and always with ``process_noise = "kf"``."""
+        n = self.noise
+        q = self.drift.rate
+        if q is None or self.adapt.process_noise == "kf":
+            return (n.sigma_rho * z) ** 2 * dt, n.sigma_b**2 * dt
+        # b's own random walk is not added: on a rigid target any disturbance of ż = −ρz
+        # shows in the size invariant, which q already carries
+        return q * z * z * dt, 0.0
+
     def observe_size(
-        self, log_size: float, rho: float, rel_sigma_fit: float, frames: tuple[int, ...]
+        self,
+        log_size: float,
+        rho: float,
+        rel_sigma_fit: float,
+        frames: tuple[int, ...],
+        t: float = math.nan,
     ) -> float:
         """A burst's size measurement ``ln(z_m s(t_b))`` at size rate ``rho`` with the fit's
         relative σ: update λ from its difference to the previous one (the size invariant holds
@@ -250,6 +267,7 @@ class Uncertainty:
         last, self._last_size = self._last_size, (log_size, rel_sigma_fit, frames)
         corr_now = 0.0 if last is None else shared_frame_correlation(last[2], frames)
         self.slow.update(log_size, rel_sigma_fit, corr_now)
+        self.drift.update(t, log_size, rel_sigma_fit)
         if last is not None:
             prev, prev_sigma, prev_frames = last
             corr = shared_frame_correlation(prev_frames, frames)
