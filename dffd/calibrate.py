@@ -337,6 +337,8 @@ def lens_toml(
     )
     zoom = f"zoom_counts = {zoom_counts}\n" if zoom_counts is not None else ""
     f_number = f"f_number = {lens.f_number!r}\n" if lens.f_number is not None else ""
+    if lens.table_sigma_v_mm > 0:  # the table's own standard error (docs/estimation.md §14)
+        f_number += f"table_sigma_v_mm = {lens.table_sigma_v_mm:.3e}\n"
     comments = "".join(f"# {line}\n" for line in notes or [])
     return (
         "# Focus calibration written by `dffd calibrate` (docs/design.md §3).\n"

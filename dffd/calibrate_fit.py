@@ -174,6 +174,13 @@ class ModelFit:
         return float(np.sqrt(np.mean(r * r)))
 
     @property
+    def table_sigma_v_um(self) -> float:
+        """Standard error of the fitted model's v over the calibrated depths: for a linear
+        smoother with p effective parameters on n depths, E[residual²] = σ²(1 − p/n) and
+        E[leave-one-out²] ≈ σ²(1 + p/n), so the model's own error σ² p/n ≈ (loo² − res²)/2."""
+        return math.sqrt(max(self.loo_rms_v_um**2 - self.rms_v_um**2, 0.0) / 2.0)
+
+    @property
     def rms_depth_mm(self) -> float:
         """RMS depth residual over the depths used."""
         r = np.asarray(self.residual_depth_mm)[np.asarray(self.used)]
@@ -355,6 +362,7 @@ def fit_table(
     lens = Lens(
         name, f, pitch, tuple(int(c) for c in grid), tuple(float(x) for x in v),
         f_number=f_number, zoom_counts=rig.zoom_counts,
+        table_sigma_v_mm=model.table_sigma_v_um / 1000.0,
     )  # fmt: skip
     return TableFit(tuple(refit), model, lens)
 

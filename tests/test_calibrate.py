@@ -112,6 +112,8 @@ def test_sim_runs_with_its_own_defaults(
     assert "table uncertainty (1σ)" in printed
     lens = Lens.from_toml(out)
     assert lens.f_number == pytest.approx(2.9)  # the rig's, for the estimator's burst plan
+    # the table states its own standard error, below the fit's residual (p/n of its variance)
+    assert 0 < lens.table_sigma_v_mm < 2e-3
     # a smooth model tabulated densely over the calibrated range, within 1 % of the truth
     assert len(lens.focus_counts) > 50
     for z in (1.5, 3.0, 7.0, 12.0):

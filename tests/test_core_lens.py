@@ -36,6 +36,9 @@ def test_round_trips_and_thin_lens() -> None:
         fd = (lens.depth_from_v(v + h) - lens.depth_from_v(v - h)) / (2 * h)
         assert lens.dz_dv(v) == pytest.approx(fd, rel=1e-5)
     assert Lens.from_meta(lens.to_meta()).focus_v_mm == lens.focus_v_mm
+    assert lens.table_sigma_v_mm == 0.0  # a table of unknown error
+    stated = Lens.from_meta(lens.to_meta() | {"table_sigma_v_mm": 3e-4})
+    assert Lens.from_meta(stated.to_meta()).table_sigma_v_mm == 3e-4
 
 
 @pytest.mark.parametrize(
@@ -51,6 +54,7 @@ def test_round_trips_and_thin_lens() -> None:
         ({"focus_table": [[4096, 31.1], [float("nan"), 31.3]]}, r"focus_table\[1\] counts"),
         ({"focus_table": [[4096, 31.1], [4500.5, 31.3]]}, r"focus_table\[1\] counts"),
         ({"zoom_counts": "tele"}, "zoom_counts"),
+        ({"table_sigma_v_mm": -1e-4}, "table_sigma_v_mm"),
     ],
 )
 def test_validation_names_the_field(change: dict[str, object], field: str) -> None:

@@ -3,12 +3,15 @@ estimate and the error-covariance propagation of every estimator (against Monte 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
+from dffd.config import DffdConfig
 from dffd.consistency import consistency_stats, in_band
+from dffd.core.estimators import EstimatorBank
 from dffd.core.filters import CF1, CF2, DepthKF, KFNoise, LPVGains, LPVObserver, cf2_gains
 from dffd.core.noise import (
     DriftRate,
@@ -19,7 +22,10 @@ from dffd.core.noise import (
     shared_frame_correlation,
     student_factor,
 )
+from dffd.core.outputs import Measurement
+from dffd.core.synthetic import synthetic_lens
 from dffd.core.uncertainty import Uncertainty
+from dffd.wiring import pipeline_config
 
 
 def test_coverage_and_nees_of_an_honest_and_of_an_overconfident_sigma() -> None:
@@ -206,3 +212,31 @@ def test_drift_rate_finds_a_wandering_size_invariant_and_none_in_white_noise() -
     assert white.rate is not None
     assert wander.rate == pytest.approx(q_true, rel=0.5)
     assert white.rate < 0.1 * q_true
+
+
+def test_published_sigma_carries_the_lens_tables_own_error() -> None:
+    """A calibrated table states its standard error in v: every published σ (the filters' and
+    the measurement's) adds it at its depth; the filters themselves are not told (a bias all
+    measurements share), so the depths do not change."""
+    base = synthetic_lens()
+    stated = dataclasses.replace(base, table_sigma_v_mm=3e-4)
+    z = 5.0
+    v = base.v_from_depth(z)
+    m = Measurement(
+        burst_id=1, t=0.0, frame_indices=(0, 1, 2), focus_counts=(1, 2, 3),
+        v_mm=(v - 0.05, v, v + 0.05), costs=(2.0, 1.0, 2.0), cost_sigmas=(0.01,) * 3,
+        alpha=1.0, v_hat_mm=v, residual=0.0, accepted=True, reason="ok", z_m=z, sigma_m=0.02,
+    )  # fmt: skip
+    banks = [EstimatorBank(pipeline_config(DffdConfig()), lens) for lens in (base, stated)]
+    for bank in banks:
+        bank.correct(m, 0.01, 0.01, 0.0)
+        bank.predict(1 / 30, 0.01, 0.01, 0.0, 0.0)
+    depth = {name: banks[0].depth(name) for name in ("cf2", "lpv", "kf")} | {"measured": z}
+    assert depth == {name: banks[1].depth(name) for name in ("cf2", "lpv", "kf")} | {"measured": z}
+    plain, with_table = banks[0].sigmas(depth), banks[1].sigmas(depth)
+    for name, zz in depth.items():
+        s0, s1 = plain[name], with_table[name]
+        assert s0 is not None
+        assert s1 is not None
+        table = abs(base.dz_dv(base.v_from_depth(zz))) * 3e-4
+        assert s1 == pytest.approx(math.hypot(s0, table), rel=1e-9), name

@@ -91,8 +91,17 @@ class EstimatorBank:
         return self.kf.sigma
 
     def sigmas(self, depth: dict[str, float | None]) -> dict[str, float | None]:
-        """The published σ of every estimator with a depth in ``depth``."""
-        return self.unc.sigmas(depth)
+        """The published σ of every estimator with a depth in ``depth``: its propagated σ and
+        the lens table's own error at that depth (a bias all its measurements share)."""
+        out = self.unc.sigmas(depth)
+        sv = self.lens.table_sigma_v_mm
+        if sv > 0:
+            lens = self.lens
+            for name, sigma in out.items():
+                z = depth.get(name)
+                if sigma is not None and z is not None and z > 0:
+                    out[name] = math.hypot(sigma, abs(lens.dz_dv(lens.v_from_depth(z))) * sv)
+        return out
 
     def predict(self, dt: float, s: float, s_prev: float, sdot: float, rho: float) -> None:
         """Step every estimator over ``dt`` > 0 from the size ``s_prev`` to ``s`` (initialised)."""

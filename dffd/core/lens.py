@@ -37,6 +37,10 @@ class Lens:
     focus_v_mm: tuple[float, ...]
     f_number: float | None = None
     zoom_counts: int | None = None
+    # Standard error of the table's v (mm) where it was calibrated (`dffd calibrate`'s fit:
+    # √((leave-one-out rms² − residual rms²)/2)); 0: not known. A table error is a bias every
+    # measurement shares, so it enters the published σ, not the filters (docs/estimation.md §14).
+    table_sigma_v_mm: float = 0.0
     _to_v: PchipInterpolator = field(init=False, repr=False)
     _to_counts: PchipInterpolator = field(init=False, repr=False)
     # The same interpolants evaluated one scalar at a time without SciPy's per-call overhead
@@ -95,6 +99,7 @@ class Lens:
             vs.append(_number(v, f"focus_table[{i}] v_mm", source))
         f_number = meta.get("f_number")
         zoom = meta.get("zoom_counts")
+        table_sigma = meta.get("table_sigma_v_mm")
         return cls(
             name=str(meta.get("name", "unnamed")),
             focal_length_mm=_number(meta.get("focal_length_mm"), "focal_length_mm", source),
@@ -103,6 +108,9 @@ class Lens:
             focus_v_mm=tuple(vs),
             f_number=None if f_number is None else _number(f_number, "f_number", source),
             zoom_counts=None if zoom is None else _integer(zoom, "zoom_counts", source),
+            table_sigma_v_mm=(
+                0.0 if table_sigma is None else _number(table_sigma, "table_sigma_v_mm", source)
+            ),
         )
 
     def to_meta(self) -> dict[str, Any]:
@@ -119,6 +127,8 @@ class Lens:
             meta["f_number"] = self.f_number
         if self.zoom_counts is not None:
             meta["zoom_counts"] = self.zoom_counts
+        if self.table_sigma_v_mm > 0:
+            meta["table_sigma_v_mm"] = self.table_sigma_v_mm
         return meta
 
     # -- derived quantities -----------------------------------------------------------------
@@ -245,6 +255,8 @@ def _validate(lens: Lens) -> None:
         raise LensError(f"{src}: focal_length_mm must be > 0 (got {lens.focal_length_mm})")
     if lens.pixel_pitch_mm <= 0:
         raise LensError(f"{src}: pixel_pitch_mm must be > 0 (got {lens.pixel_pitch_mm})")
+    if not lens.table_sigma_v_mm >= 0:
+        raise LensError(f"{src}: table_sigma_v_mm must be >= 0 (got {lens.table_sigma_v_mm})")
     if lens.f_number is not None and lens.f_number <= 0:
         raise LensError(f"{src}: f_number must be > 0 (got {lens.f_number})")
     if len(lens.focus_counts) != len(lens.focus_v_mm) or len(lens.focus_counts) < 2:
