@@ -122,7 +122,7 @@ class CoreStep:
         # std 0.31 m instead of 7.7 mm with hil run paper-circle --fast.)
         out = pipeline.process(frame, tag)
         obs = out.observation
-        centroid = None
+        centroid = out.candidate_px  # while acquiring: a target cut by the frame's edge
         if obs is not None and obs.ok:
             centroid = (float(obs.centroid[0]), float(obs.centroid[1]))
         sigma: float | None = None

@@ -87,3 +87,6 @@ class PipelineOutput:
     estimate: Estimate | None
     measurement: Measurement | None
     observation: BoundaryObservation | None
+    # While acquiring: the visible centroid of a target cut by the frame's edge, where the head
+    # should turn (dffd/core/clipped.py); None otherwise.
+    candidate_px: tuple[float, float] | None = None

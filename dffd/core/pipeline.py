@@ -34,6 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dffd.core.bursts import BurstAssembler, FocusSettings
+from dffd.core.clipped import find_clipped_target
 from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig, find_target
 from dffd.core.estimators import EstimatorBank
 from dffd.core.filters import Differentiator, KFNoise, KFTraceEvent
@@ -194,6 +195,7 @@ class Pipeline:
         self._pending_roi: tuple[int, int, int, int] | None = None
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
         self._frames_since_search = 0
+        self._candidate: tuple[float, float] | None = None  # a cut-off target (clipped.py)
         self._reset_estimators()
 
     @property
@@ -256,6 +258,7 @@ class Pipeline:
         self._hold = True
         self._state = "idle"
         self._last_box = None
+        self._candidate = None
         self._reset_estimators()
 
     def record_kf(self, trace: list[KFTraceEvent]) -> None:
@@ -308,7 +311,7 @@ class Pipeline:
         if not self._tracker.active and not self._try_acquire(frame):
             if tag.role == "track":
                 measurement = self._finish_burst() or measurement
-            return PipelineOutput(self._state, None, measurement, None)
+            return PipelineOutput(self._state, None, measurement, None, self._candidate)
         # Every frame follows scale too (transit frames included): a contour frozen in size
         # through a long focus travel (the first bursts span the working range: 40 transit
         # frames) drifts out of the outlier gate and the target is lost mid-burst (measured on
@@ -372,9 +375,14 @@ class Pipeline:
             poly = find_target(gray, roi, self._tracker.config.min_radius_px, downscale=scale)
             if poly is not None and self._tracker.start(gray, poly, frame.t):
                 logger.info("target acquired at frame %d (roi=%s)", frame.index, roi)
+                self._candidate = None
                 self._pending_roi = None
                 self._state = "tracking"
                 return True
+        if rois and rois[-1] is None:
+            # Nothing whole in the frame: a target cut by its edge is where to turn (else a
+            # target that starts half out of view and moves away is never seen again).
+            self._candidate = find_clipped_target(gray, self._tracker.config.min_radius_px)
         return False
 
     # -- estimation -------------------------------------------------------------------------
