@@ -89,6 +89,9 @@ class _Trace:
     estimates: list[tuple[float, float]] = field(default_factory=list)  # (received, latency s)
     measurements: list[float] = field(default_factory=list)  # received
     samples: list[tuple[float, float, int]] = field(default_factory=list)  # (t, cpu s, rss KiB)
+    # per sample: RSS of anonymous memory (heap, Python's arenas, stacks) and of mapped files
+    # (code and data of the libraries), KiB — which of the two grows
+    rss_split: list[tuple[int, int]] = field(default_factory=list)
     threads: list[dict[str, float]] = field(default_factory=list)  # thread name → CPU s, per sample
     # Frame delivered to the daemon → estimate at this subscriber (s), from the …/sim/truth
     # message of the same frame (see _receive).
@@ -160,6 +163,15 @@ def summarize(
     slope_from = max(WARMUP_S, (1.0 - SLOPE_FRACTION) * run_s)
     steady = [(t, rss) for t, _, rss in samples if t >= slope_from]
     slope = _slope_per_hour(steady)
+    split = [trace.rss_split[i] for i in kept if i < len(trace.rss_split)]
+    parts: dict[str, float | None] = {}
+    if len(split) == len(samples):
+        for k, name in enumerate(("anon", "file")):
+            part = [(t, kib[k] / MIB) for (t, _, _), kib in zip(samples, split, strict=True)]
+            parts[f"{name}_slope_mib_per_hour"] = _slope_per_hour(
+                [(t, v) for t, v in part if t >= slope_from]
+            )
+            parts[f"{name}_last_mib"] = part[-1][1] if part else None
     windows = []
     for start in np.arange(0.0, max(run_s, 0.0), window_s):
         end = start + window_s
@@ -206,7 +218,8 @@ def summarize(
             "slope_mib_per_hour": slope,
             "slope_from_s": slope_from,
             "samples": len(steady),
-        },
+        }
+        | parts,
         "latency_ms": {
             "exposure_to_subscriber": {p: _pct(lat, q) for p, q in _PCTS},
             "daemon_share": {p: _pct(lat - delivery_lag_ms, q) for p, q in _PCTS},
@@ -238,7 +251,9 @@ def format_summary(result: dict[str, Any]) -> str:
         f"CPU {f(result['cpu_pct_one_core'])} % of one core (service without the simulator "
         f"{f(result.get('service_cpu_pct_one_core'))} %); RSS {f(rss['min'])}-"
         f"{f(rss['max'])} MiB, slope {f(rss['slope_mib_per_hour'], '.2f')} MiB/h "
-        f"(least squares after {rss['slope_from_s']:.0f} s, {rss['samples']} samples)"
+        f"(least squares after {rss['slope_from_s']:.0f} s, {rss['samples']} samples; "
+        f"anonymous {f(rss.get('anon_slope_mib_per_hour'), '.2f')}, mapped files "
+        f"{f(rss.get('file_slope_mib_per_hour'), '.2f')} MiB/h)"
     )
     dts = lat.get("delivered_to_subscriber", {})
     latency = (
@@ -358,7 +373,21 @@ async def _sample(pid: int, trace: _Trace) -> None:
         user, system = cpu_times(pid)
         trace.threads.append(thread_cpu_s(pid))
         trace.samples.append((time.monotonic(), user + system, rss_kib(pid)))
+        trace.rss_split.append(_rss_anon_file_kib(pid))
         await asyncio.sleep(SAMPLE_PERIOD_S)
+
+
+def _rss_anon_file_kib(pid: int) -> tuple[int, int]:
+    """RssAnon and RssFile of ``pid`` (KiB; 0 where /proc does not say)."""
+    found = {"RssAnon:": 0, "RssFile:": 0}
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            key = line.split(maxsplit=1)[0] if line else ""
+            if key in found:
+                found[key] = int(line.split()[1])
+    except OSError:
+        pass
+    return found["RssAnon:"], found["RssFile:"]
 
 
 def git_commit() -> str | None:

@@ -243,6 +243,12 @@ def test_soak_writes_its_figures_and_plot(tmp_path: Path) -> None:
     assert result["start_to_first_estimate_s"] > 0
     assert result["cpu_pct_one_core"] > 0
     assert result["rss_mib"]["min"] > 0
+    # which part of RSS grows: anonymous memory or mapped files (libraries' pages)
+    assert result["rss_mib"]["anon_last_mib"] > 0
+    assert result["rss_mib"]["file_last_mib"] > 0
+    assert result["rss_mib"]["anon_last_mib"] + result["rss_mib"]["file_last_mib"] == (
+        pytest.approx(result["rss_series"][-1][1], abs=1.0)
+    )
     lat = result["latency_ms"]["exposure_to_subscriber"]
     assert 0 < lat["p50"] <= lat["p99"] <= lat["max"]
     assert len(result["windows"]) >= 3
