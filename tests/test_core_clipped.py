@@ -95,3 +95,12 @@ def test_the_bench_target_that_starts_half_out_of_view_is_acquired_at_once() -> 
     result = run_session(scenario, case, trajectory, 2, duration_s=2.0)
     assert result.frames == 60
     assert result.estimate_frames >= 0.8 * result.frames
+
+
+def test_after_a_sighting_the_search_owns_the_hunt() -> None:
+    """Once a target was tracked, a loss is the scheduler's search sweep's to solve: no
+    candidate then (the sweep reports its views; a cut-off blob would pre-empt it)."""
+    pipe = Pipeline(SERVICE, LENS)
+    assert pipe.process(*_frame(0, _image((320.0, 240.0)))).state == "tracking"
+    pipe.acquire_auto()
+    assert pipe.process(*_frame(1, _image((330.0, 462.0)))).candidate_px is None

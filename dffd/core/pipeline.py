@@ -196,6 +196,7 @@ class Pipeline:
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
         self._frames_since_search = 0
         self._candidate: tuple[float, float] | None = None  # a cut-off target (clipped.py)
+        self._ever_tracked = False  # a target was acquired since the start
         self._reset_estimators()
 
     @property
@@ -376,12 +377,14 @@ class Pipeline:
             if poly is not None and self._tracker.start(gray, poly, frame.t):
                 logger.info("target acquired at frame %d (roi=%s)", frame.index, roi)
                 self._candidate = None
+                self._ever_tracked = True
                 self._pending_roi = None
                 self._state = "tracking"
                 return True
-        if rois and rois[-1] is None:
-            # Nothing whole in the frame: a target cut by its edge is where to turn (else a
-            # target that starts half out of view and moves away is never seen again).
+        if rois and rois[-1] is None and not self._ever_tracked:
+            # Nothing whole in the frame before any sighting: a target cut by its edge is where
+            # to turn (else a target that starts half out of view and moves away is never seen
+            # again). After a sighting and a loss the scheduler's search sweep owns the hunt.
             self._candidate = find_clipped_target(gray, self._tracker.config.min_radius_px)
         return False
 
