@@ -26,7 +26,7 @@ from drivers.sim.config import (
     load_sim_camera_config,
     with_overrides,
 )
-from drivers.sim.optics import Optics, world_from_camera
+from drivers.sim.optics import Optics, TargetImage, render_patch, world_from_camera
 from drivers.sim.resources import reference_camera_file
 from drivers.sim.source import SimFrameSource, camera_state_for
 from drivers.sim.state import CameraState
@@ -556,3 +556,27 @@ async def test_close_wakes_a_waiting_consumer(reference) -> None:
     async with asyncio.timeout(FRAME_TIMEOUT_S):
         with pytest.raises(FrameSourceError):
             await waiter
+
+
+def test_a_smear_longer_than_the_frame_is_cut_to_its_diagonal() -> None:
+    # A search sweep slews the head during an exposure; one end of the exposure can project
+    # tens of thousands of pixels away. The smear is cut to the frame's diagonal, so the patch
+    # stays bounded (before: a 21,469 px smear asked for a 3.4 GiB kernel and the run was killed).
+    angles = np.linspace(0.0, 2.0 * math.pi, 32, endpoint=False)
+    outline = np.stack([320.0 + 20.0 * np.cos(angles), 240.0 + 20.0 * np.sin(angles)], axis=1)
+    target = TargetImage(outline_px=outline, foreground_dn=200.0)
+    kernel = np.ones((3, 3), dtype=np.float32) / 9.0
+    frame_size = (640, 480)
+    diagonal = math.hypot(*frame_size)
+    patch = render_patch(target, 50.0, kernel, (21469.0, -300.0), frame_size)
+    assert patch is not None
+    height, width = patch.image.shape
+    assert width <= 640 + diagonal + 20
+    assert height <= 480 + diagonal + 20
+    # Still the target's light, spread along the (cut) smear: brighter than the background.
+    assert float(patch.image.max()) > 50.0
+    assert float(patch.image.max()) < 200.0
+    # A smear within the frame is rendered as before.
+    short = render_patch(target, 50.0, kernel, (30.0, 0.0), frame_size)
+    assert short is not None
+    assert short.image.shape[1] < 200
