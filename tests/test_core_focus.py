@@ -202,7 +202,7 @@ def test_edge_variance_grows_as_the_blur_variance_on_both_sides_of_focus() -> No
             assert poly is not None
             tracker = ContourTracker(TrackerConfig())
             assert tracker.start(img, poly, 0.0)
-            cost = frame_cost(tracker.update(img, 0.0, "similarity"))
+            cost = frame_cost(tracker.update(img, 0.0, "similarity"), "edge_variance")
             assert cost is not None
             values.append(cost[0])
         curvature, linear, _ = np.polyfit(blurs, values, 2)
@@ -230,7 +230,7 @@ def test_the_trackers_pooled_cost_equals_the_reference_pooling() -> None:
     tracker = ContourTracker(TrackerConfig())
     assert tracker.start(img, poly, 0.0)
     obs = tracker.update(img, 0.0, "similarity")
-    pooled = frame_cost(obs)
+    pooled = frame_cost(obs, "edge_variance")
     moments = obs.edge_moments()
     assert moments is not None
     reference = edge_variance_cost(moments.var, moments.mass, TrackerConfig().trim_fraction)

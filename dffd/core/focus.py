@@ -150,10 +150,13 @@ def edge_variance_cost(
 
 def frame_cost(
     obs: FrameFocus,
-    measure: FocusMeasure = DEFAULT_FOCUS_MEASURE,
+    measure: FocusMeasure,
     trim_fraction: float = 0.1,
 ) -> tuple[float, float] | None:
     """Focus cost (g, σ_g) of one tracked frame with the chosen measure, or None.
+
+    The measure has no default here: the configuration's (``[estimator] focus_measure``) is the
+    one default, and every caller passes it.
 
     ``edge_variance``: the edge moments pooled with the tracker's own ``trim_fraction`` (same
     pooling as :func:`edge_variance_cost`, in its compiled kernel); ``debiased_peak``: the same
