@@ -1,0 +1,183 @@
+"""The closed loop's reading of a calibration sweep: where a burst bracket settles (dffd calibrate).
+
+The estimator fits a parabola through three settings ``c − h, c, c + h`` and re-centres the next
+bracket on its vertex; it settles where that vertex is its own centre, i.e. where the bracket's
+two ends cost the same, ``g(c − h) = g(c + h)`` (the middle setting's cost drops out). For a
+cost that is an even function of defocus (a Gaussian or a disc blur) that is the sharpest
+setting; for one that is not (an aberrated lens, whose caustic lowers the cost on one side of
+focus only) it is not, and it is not where a least-squares parabola over the whole ± h window
+has its vertex either (docs/estimation.md §13: +7.0 against +3.3 µm of v from the RMS focus on
+the aberrated optics). A table calibrated on this reading makes the closed loop read the
+calibrated depth whatever the point-spread function (:func:`closed_loop_vertex`).
+
+The sweep's costs are smoothed locally (a weighted quadratic through the ``2k + 1`` settings
+nearest each evaluation point, ``k`` chosen by leave-one-out cross-validation on the settings
+around the bracket's ends), the three-point fit of the estimator
+(:func:`dffd.core.focus.fit_burst`) is iterated on the smoothed curve until its vertex is its
+centre. Where the bracket meets an end of the focus range the estimator shifts it, not shrinks
+it (:func:`dffd.core.focus.plan_burst`), and so does this reading: the result is then the
+three-point vertex of the pinned bracket (a target beyond ~11 m, whose ``v − h`` lies beyond
+infinity focus). A sweep that does not reach the bracket gives None (the caller falls back to
+the least-squares vertex, :func:`dffd.calibrate_fit.fit_vertex`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+# Half-widths (settings either side) the local quadratic may use; chosen per sweep by
+# leave-one-out cross-validation. From 5 settings (the fewest a quadratic with a residual check
+# needs) to 11 (about ± 0.6 h on a 41-setting sweep over ± 2 h: wider would smooth across the
+# cost's change of curvature at the bracket's ends).
+SMOOTH_HALF_POINTS = (2, 3, 4, 5)
+# The settings that choose the smoothing and scale its σ: within this fraction of h of either
+# end of the first bracket (where the reading looks).
+CV_REACH_H = 0.5
+FIXED_POINT_ITERATIONS = 60  # the map contracts by |1 − slope| ≈ 0.15 a step: ~8 suffice
+FIXED_POINT_TOLERANCE_H = 1e-6  # converged when the centre moves less than this × h
+OUTLIER_SIGMA = 4.0  # a setting beyond this many robust σ of its neighbours' fit is dropped
+MAD_TO_SIGMA = 1.4826  # σ of a normal distribution per median absolute deviation
+
+
+@dataclass(frozen=True, slots=True)
+class LoopReading:
+    """Where the closed loop reads a sweep: its vertex ``x`` and σ (the sweep's axis), the
+    bracket centre it settled on (≠ x only when pinned at an end) and the smoothing used."""
+
+    x: float
+    sigma: float
+    centre: float
+    pinned: bool  # the bracket met an end of the focus range and was shifted
+    half_points: int  # the local quadratic's half-width (settings)
+    noise_scale: float  # the smoother's residual rms over the settings' own σ (≥ 1)
+    n_dropped: int
+
+
+def closed_loop_vertex(
+    x: npt.ArrayLike,
+    g: npt.ArrayLike,
+    sigma_g: npt.ArrayLike,
+    half_width: float,
+    *,
+    start: float,
+    ends: tuple[float, float] = (-math.inf, math.inf),
+) -> LoopReading | None:
+    """The closed loop's reading of the costs ``g`` (σ ``sigma_g``) at settings ``x``.
+
+    ``half_width``: the estimator's half-bracket h in ``x``'s units; ``start``: a first centre
+    (the least-squares vertex); ``ends``: the focus range's ends in ``x`` (the bracket is
+    shifted to stay inside). None when the sweep does not cover the bracket or has no minimum.
+    """
+    xs = np.asarray(x, dtype=np.float64)
+    gs = np.asarray(g, dtype=np.float64)
+    ss = np.asarray(sigma_g, dtype=np.float64)
+    order = np.argsort(xs)
+    xs, gs, ss = xs[order], gs[order], ss[order]
+    ok = np.isfinite(xs) & np.isfinite(gs) & np.isfinite(ss)
+    xs, gs, ss = xs[ok], gs[ok], np.maximum(ss[ok], 1e-12 * np.abs(gs[ok]).max(initial=1.0))
+    h = float(half_width)
+    if len(xs) < 2 * SMOOTH_HALF_POINTS[0] + 1 or not h > 0:
+        return None
+    lo_end, hi_end = min(ends), max(ends)
+    if hi_end - lo_end < 2 * h:
+        return None
+
+    def clamp(c: float) -> float:
+        return min(max(c, lo_end + h), hi_end - h)
+
+    centre = clamp(float(start))
+    near = (np.abs(xs - (centre - h)) <= CV_REACH_H * h) | (
+        np.abs(xs - (centre + h)) <= CV_REACH_H * h
+    )
+    keep = np.ones(len(xs), dtype=bool)
+    k, scale = _choose_smoothing(xs, gs, ss, keep, near)
+    # settings far off their neighbours' fit (a frame with a lost contour …) are dropped once
+    resid = _loo_residuals(xs, gs, ss, keep, k=k, at=near)
+    robust = MAD_TO_SIGMA * float(np.median(np.abs(resid[near]))) if near.any() else 0.0
+    bad = near & (np.abs(resid) > OUTLIER_SIGMA * max(robust, 1.0))
+    if bad.any():
+        keep &= ~bad
+        k, scale = _choose_smoothing(xs, gs, ss, keep, near & keep)
+    xk, gk, sk = xs[keep], gs[keep], ss[keep]
+    result = None
+    for _ in range(FIXED_POINT_ITERATIONS):
+        if centre - h < xk[0] - 1e-9 * h or centre + h > xk[-1] + 1e-9 * h:
+            return None
+        weights = [_smoother_weights(xk, sk, at, k) for at in (centre - h, centre, centre + h)]
+        gm, g0, gp = (float(w @ gk) for w in weights)
+        den = 2.0 * (gm - 2.0 * g0 + gp)
+        if den <= 0:
+            return None
+        vertex = centre + h * (gm - gp) / den
+        result = (vertex, centre, weights, gm, gp, den)
+        nxt = clamp(vertex)
+        if abs(nxt - centre) < FIXED_POINT_TOLERANCE_H * h:
+            break
+        centre = nxt
+    else:
+        return None
+    assert result is not None
+    vertex, centre, weights, gm, gp, den = result
+    # σ of the three-point vertex at the settled bracket, first order in the costs
+    n = gm - gp
+    d_m = h * (1.0 / den - 2.0 * n / den**2)
+    d_0 = h * 4.0 * n / den**2
+    d_p = h * (-1.0 / den - 2.0 * n / den**2)
+    w = d_m * weights[0] + d_0 * weights[1] + d_p * weights[2]
+    sigma = math.sqrt(float(np.sum((w * sk) ** 2))) * scale
+    pinned = abs(vertex - centre) > 1e3 * FIXED_POINT_TOLERANCE_H * h
+    return LoopReading(vertex, sigma, centre, pinned, k, scale, int((~keep).sum()))
+
+
+# -- private helpers --------------------------------------------------------------------------
+def _smoother_weights(x: FloatArray, s: FloatArray, at: float, k: int) -> FloatArray:
+    """Weights w with smoothed g(at) = w · g: a weighted quadratic through the 2k + 1 settings
+    nearest ``at``."""
+    idx = np.argsort(np.abs(x - at), kind="stable")[: 2 * k + 1]
+    t = x[idx] - at
+    design = np.stack([np.ones_like(t), t, t * t], axis=1) / s[idx, None]
+    pinv = np.linalg.pinv(design)
+    w = np.zeros(len(x))
+    w[idx] = pinv[0] / s[idx]
+    return w
+
+
+def _loo_residuals(
+    x: FloatArray, g: FloatArray, s: FloatArray, keep: BoolArray, *, k: int, at: BoolArray
+) -> FloatArray:
+    """At the settings ``at``: the cost less the local quadratic of the other kept settings, in
+    its σ (NaN elsewhere)."""
+    out = np.full(len(x), np.nan)
+    for i in np.flatnonzero(at):
+        others = keep.copy()
+        others[i] = False
+        if others.sum() < 2 * k + 1:
+            continue
+        w = _smoother_weights(x[others], s[others], float(x[i]), k)
+        out[i] = (g[i] - float(w @ g[others])) / s[i]
+    return out
+
+
+def _choose_smoothing(
+    x: FloatArray, g: FloatArray, s: FloatArray, keep: BoolArray, near: BoolArray
+) -> tuple[int, float]:
+    """The half-width with the smallest leave-one-out error at the ``near`` settings, and that
+    error's rms in the settings' σ (≥ 1: it scales the reading's σ)."""
+    best = (SMOOTH_HALF_POINTS[0], math.inf)
+    for k in SMOOTH_HALF_POINTS:
+        r = _loo_residuals(x, g, s, keep, k=k, at=near)[near]
+        r = r[np.isfinite(r)]
+        if len(r) == 0:
+            continue
+        mse = float(np.mean(r * r))
+        if mse < best[1]:
+            best = (k, mse)
+    k, mse = best
+    return k, max(1.0, math.sqrt(mse)) if math.isfinite(mse) else 1.0
