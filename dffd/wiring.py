@@ -23,12 +23,14 @@ if TYPE_CHECKING:
     from dffd.config import DffdConfig
     from dffd.core.lens import Lens
     from dffd.core.tracking3d import TrackerKind
+    from dffd.scheduler import Scheduler
     from drivers.frames import FrameSource
     from drivers.sim.config import SimCameraConfig
     from drivers.stream import StreamFrameSource
 
 __all__ = [
     "WiringError",
+    "arm_search",
     "build_core",
     "capture_source",
     "pipeline_config",
@@ -58,6 +60,20 @@ def build_core(
     if settings.target.roi is not None:
         core.pipeline.acquire_roi(*settings.target.roi)
     return core
+
+
+def arm_search(scheduler: Scheduler, settings: DffdConfig, t: float) -> None:
+    """Arm ``scheduler``'s search sweep for the start of a run at ``t``, as ``[target]`` says.
+
+    Automatic acquisition (no ``[target] roi``) sweeps pan/tilt when nothing is seen for
+    ``[scheduler] search_after_s``; an ROI names a target in this view, so no sweep until it was
+    seen and lost. The daemon and the lock-step bench both start this way, so a bench run
+    searches exactly as the service would.
+    """
+    if settings.target.roi is None:
+        scheduler.arm_search(t)
+    else:
+        scheduler.disarm_search()
 
 
 def scheduler_config(

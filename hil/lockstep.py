@@ -42,6 +42,7 @@ from dffd.core.lens import Lens
 from dffd.core.pipeline import PipelineConfig, PipelineOutput
 from dffd.core.tracking3d import TRACKER_KINDS
 from dffd.core.types import FrameTag
+from dffd.daemon.searchwatch import SearchWatch
 from dffd.scheduler import (
     Action,
     FocusInquiry,
@@ -51,6 +52,7 @@ from dffd.scheduler import (
     depth_rate_limit,
 )
 from dffd.step import CoreStep, StepResult
+from dffd.wiring import arm_search
 from dffd.wiring import pipeline_config as service_pipeline_config
 from dffd.wiring import scheduler_config as service_scheduler_config
 from drivers.frames import Frame
@@ -194,6 +196,7 @@ class _Runner:
         self.pipeline = self.core.pipeline
         self.sched_config = scheduler_config(session, self.lens, dcfg, scenario.scheduler)
         self.scheduler = Scheduler(self.sched_config)
+        self.search_watch = SearchWatch(self.scheduler)  # logs the sweep as the daemon does
         self.scheduler.set_track_focus(
             self.lens.counts_for_depth(dcfg.scheduler.initial_focus_depth_m)
         )
@@ -209,6 +212,7 @@ class _Runner:
             best=self.pipeline.config.best,
             track3d=Track3DScore(scenario.settle_s),
         )
+        self.daemon_config = dcfg
         self.n_frames = round(duration * session.fps)
         self.truth: dict[int, float] = {}
         self._truth_order: deque[int] = deque()
@@ -237,6 +241,11 @@ class _Runner:
         now = 0.0
         self.session.set_time(now)
         self.device.power_up(now)
+        if self.policy == "dffd":
+            # As the daemon starts: automatic acquisition sweeps pan/tilt if nothing is seen.
+            # (The baselines' passes keep the head where they started: the ArUco marker is not
+            # the core's target, and the focus sweeps only borrow the centring.)
+            arm_search(self.scheduler, self.daemon_config, now)
         k = 0
         while k < self.n_frames:
             t_frame = self.session.delivery_time(k)
@@ -275,6 +284,7 @@ class _Runner:
                 continue
             for outcome in self.link.send(action, now):
                 self._dispatch(outcome)
+        self.search_watch.update(now)
         if self.policy in SWEEPS:
             move = self._sweep.next_move(now)
             if move is not None:

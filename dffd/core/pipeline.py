@@ -34,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dffd.core.bursts import BurstAssembler, FocusSettings
-from dffd.core.clipped import find_clipped_target
+from dffd.core.clipped import ClippedHint
 from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig, find_target
 from dffd.core.estimators import EstimatorBank
 from dffd.core.filters import Differentiator, KFNoise, KFTraceEvent
@@ -196,6 +196,7 @@ class Pipeline:
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
         self._frames_since_search = 0
         self._candidate: tuple[float, float] | None = None  # a cut-off target (clipped.py)
+        self._hint = ClippedHint(lens.focal_length_mm / lens.pixel_pitch_mm)
         self._ever_tracked = False  # a target was acquired since the start
         self._reset_estimators()
 
@@ -250,6 +251,8 @@ class Pipeline:
         self._tracker.reset()
         self._state = "acquiring"
         self._last_box = None
+        self._candidate = None
+        self._hint.reset()
         self._reset_estimators()
 
     def release(self) -> None:
@@ -260,6 +263,7 @@ class Pipeline:
         self._state = "idle"
         self._last_box = None
         self._candidate = None
+        self._hint.reset()
         self._reset_estimators()
 
     def record_kf(self, trace: list[KFTraceEvent]) -> None:
@@ -309,7 +313,7 @@ class Pipeline:
         pending_id = self._bursts.pending_id
         if pending_id is not None and tag.burst is not None and tag.burst[0] != pending_id:
             measurement = self._finish_burst()  # a new burst before any tracking frame
-        if not self._tracker.active and not self._try_acquire(frame):
+        if not self._tracker.active and not self._try_acquire(frame, tag):
             if tag.role == "track":
                 measurement = self._finish_burst() or measurement
             return PipelineOutput(self._state, None, measurement, None, self._candidate)
@@ -345,7 +349,7 @@ class Pipeline:
         return PipelineOutput(self._state, estimate, done or measurement, obs)
 
     # -- acquisition --------------------------------------------------------------------------
-    def _try_acquire(self, frame: Frame) -> bool:
+    def _try_acquire(self, frame: Frame, tag: FrameTag) -> bool:
         img = frame.image
         gray: npt.NDArray[np.uint8] = img
         if img.ndim != 2 or img.dtype != np.uint8 or not img.flags.c_contiguous:
@@ -385,7 +389,11 @@ class Pipeline:
             # Nothing whole in the frame before any sighting: a target cut by its edge is where
             # to turn (else a target that starts half out of view and moves away is never seen
             # again). After a sighting and a loss the scheduler's search sweep owns the hunt.
-            self._candidate = find_clipped_target(gray, self._tracker.config.min_radius_px)
+            # The hint checks itself: a blob turned to must come into view whole and be taken
+            # here, else it is rejected; after a few rejections the sweep takes over too.
+            self._candidate = self._hint.update(
+                gray, frame.t, tag.pan_deg, tag.tilt_deg, self._tracker.config.min_radius_px
+            )
         return False
 
     # -- estimation -------------------------------------------------------------------------

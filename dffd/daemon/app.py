@@ -91,6 +91,7 @@ from dffd.scheduler import Action, Scheduler, SchedulerConfig, depth_rate_limit
 from dffd.web.interface import Snapshot
 from dffd.web.listen import WebConfigError
 from dffd.wiring import (
+    arm_search,
     build_core,
     scheduler_config,
 )
@@ -378,10 +379,8 @@ class Daemon:
                     self.camera = camera
                     actuators = Actuators(camera, self.scheduler, self._wake.set)
                     await source.start()
-                    if cfg.target.roi is None:  # automatic acquisition: sweep if not in view
-                        self.scheduler.arm_search(time.monotonic())
-                    else:  # the ROI is in this view: a sweep only after a sighting and a loss
-                        self.scheduler.disarm_search()
+                    # Automatic acquisition sweeps if nothing is in view; an ROI does not.
+                    arm_search(self.scheduler, cfg, time.monotonic())
                     self._results_failed = asyncio.get_running_loop().create_future()
                     tasks = [
                         group.create_task(self._capture_loop(source), name="capture"),

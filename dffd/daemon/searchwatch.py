@@ -3,7 +3,8 @@
 The sweep itself is the pure scheduler's (:mod:`dffd.scheduler.search`); this only watches its
 status after every scheduler step and says what changed: when a sweep starts (with its extent),
 when the target is found, when a whole sweep found nothing (WARNING: the head then holds where the
-sweep began until the next one).
+sweep began until the next one). The lock-step bench watches its scheduler with it too (no status
+board there), so a bench run logs its sweeps as the service does.
 """
 
 from __future__ import annotations
@@ -21,9 +22,9 @@ __all__ = ["SearchWatch"]
 
 
 class SearchWatch:
-    """Follows ``scheduler.search_status`` into ``board.search`` and the log."""
+    """Follows ``scheduler.search_status`` into ``board.search`` (if a board) and the log."""
 
-    def __init__(self, scheduler: Scheduler, board: StatusBoard) -> None:
+    def __init__(self, scheduler: Scheduler, board: StatusBoard | None = None) -> None:
         self.scheduler = scheduler
         self.board = board
         self._last: SearchStatus | None = None
@@ -33,7 +34,8 @@ class SearchWatch:
         return True then (the shell publishes the status at once)."""
         status = self.scheduler.search_status
         last, self._last = self._last, status
-        self.board.search = status
+        if self.board is not None:
+            self.board.search = status
         before = None if last is None else last.phase
         after = None if status is None else status.phase
         if before == after:
