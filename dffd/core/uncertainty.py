@@ -13,15 +13,15 @@ new measurement's error, correlated with the old one when the two bursts share a
 * the Kalman filter: ``e ← Φ e`` between bursts and ``e ← (I − K C) e − K ε`` at an update with
   the gain it used — its own P assumes white measurement noise, this one does not.
 
-:class:`Uncertainty` runs one per estimator next to the filters, adapts the measurement noise
-and the time offset from the Kalman filter's innovations (:mod:`dffd.core.noise`), and publishes
-``σ = √P_zz × t-factor`` per estimator. Pure; numpy on 3×3 matrices.
+:class:`Uncertainty` runs one per estimator next to the filters, adapts the measurement noise,
+the process noise and the slow-error factor from the size invariant (:mod:`dffd.core.noise`),
+and publishes ``σ = √(P_zz ι) × t-factor`` per estimator (docs/estimation.md §9, §14, §17).
+Pure; numpy on 3×3 matrices.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
@@ -42,20 +42,60 @@ FIXED_GAIN = ("cf1", "cf2", "lpv")
 
 
 class ErrorCovariance:
-    """Covariance of ``[e (n states), ε]`` of one linear estimator (``n`` = 1 or 2)."""
+    """Covariance of ``[e (n states), ε]`` of one linear estimator (``n`` = 1 or 2).
+
+    Kept in three parts that add up with the process-noise intensities as weights: ``p``, driven
+    by the measurements' errors and the initial error; ``pz``, the error covariance (``n × n``)
+    that a unit random walk of ``ln z`` (variance ``z² dt`` per step) would have caused; ``pb``,
+    the one a unit random walk of ``b`` (variance ``dt``) would have caused. Every step is
+    linear in the noise, so ``P = p + w_z pz + w_b pb`` for any intensities, and the weights can
+    change after the fact: when the data give the process noise (DriftRate), the whole history
+    is re-weighted, including what a filter inherited at a hand-over (docs/estimation.md §17).
+    """
 
     def __init__(self, n: int) -> None:
         self.n = n
         self.p: FloatArray = np.zeros((n + 1, n + 1))
+        self.pz: list[float] = [0.0] * (n * n)  # row-major n × n
+        self.pb: list[float] | None = [0.0] * (n * n)  # None once its weight is 0 for good
+        self.weights: tuple[float, float] = (0.0, 0.0)  # (w_z, w_b), set by the owner
 
     @property
     def var_z(self) -> float:
         """Variance of the depth error."""
-        return max(float(self.p[0, 0]), 0.0)
+        wz, wb = self.weights
+        v = float(self.p[0, 0]) + wz * self.pz[0]
+        if self.pb is not None:
+            v += wb * self.pb[0]
+        return max(v, 0.0)
 
-    def propagate(self, phi: Mat2, g: Vec2, ratio: float, q: Mat2) -> None:
-        """One frame: ``e ← phi e − g ε + w`` (``cov w = q``), ``ε ← ratio ε``; for ``n = 1``
-        only the first entries of ``phi``, ``g`` and ``q`` are used.
+    def total(self) -> FloatArray:
+        """The whole covariance of ``[e, ε]`` at the current weights."""
+        n = self.n
+        wz, wb = self.weights
+        p = self.p.copy()
+        p[:n, :n] += wz * np.array(self.pz).reshape(n, n)
+        if self.pb is not None:
+            p[:n, :n] += wb * np.array(self.pb).reshape(n, n)
+        return p
+
+    def clone(self) -> ErrorCovariance:
+        """An independent copy."""
+        out = ErrorCovariance(self.n)
+        out.p = self.p.copy()
+        out.pz = list(self.pz)
+        out.pb = None if self.pb is None else list(self.pb)
+        out.weights = self.weights
+        return out
+
+    def drop_b_walk(self) -> None:
+        """Forget the b random walk's part (its weight is 0 from now on)."""
+        self.pb = None
+
+    def propagate(self, phi: Mat2, g: Vec2, ratio: float, qz: Mat2, qb: Mat2) -> None:
+        """One frame: ``e ← phi e − g ε + w``, ``ε ← ratio ε``; ``qz`` and ``qb`` are the
+        covariances of ``w`` for a unit intensity of each random walk. For ``n = 1`` only the
+        first entries of ``phi``, ``g``, ``qz`` and ``qb`` are used.
 
         Written out on floats: it runs for four estimators on every frame, and NumPy's
         per-call overhead on 3×3 arrays is most of the cost (measured ~4× slower).
@@ -65,8 +105,11 @@ class ErrorCovariance:
             (a, c), (_, d) = rows
             f, g0 = phi[0], g[0]
             u = f * c - g0 * d
-            e = f * f * a - 2.0 * f * c * g0 + d * g0 * g0 + q[0]
+            e = f * f * a - 2.0 * f * c * g0 + d * g0 * g0
             self.p = np.array([[e, ratio * u], [ratio * u, ratio * ratio * d]])
+            self.pz = [f * f * self.pz[0] + qz[0]]
+            if self.pb is not None:
+                self.pb = [f * f * self.pb[0] + qb[0]]
             return
         (a00, a01, c0), (_, a11, c1), (_, _, d) = rows
         p00, p01, p10, p11 = phi
@@ -74,11 +117,14 @@ class ErrorCovariance:
         b00, b01 = p00 * a00 + p01 * a01, p00 * a01 + p01 * a11
         b10, b11 = p10 * a00 + p11 * a01, p10 * a01 + p11 * a11
         h0, h1 = p00 * c0 + p01 * c1, p10 * c0 + p11 * c1  # Φ c
-        e00 = b00 * p00 + b01 * p01 - 2.0 * h0 * g0 + d * g0 * g0 + q[0]
-        e01 = b00 * p10 + b01 * p11 - h0 * g1 - g0 * h1 + d * g0 * g1 + q[1]
-        e11 = b10 * p10 + b11 * p11 - 2.0 * h1 * g1 + d * g1 * g1 + q[3]
+        e00 = b00 * p00 + b01 * p01 - 2.0 * h0 * g0 + d * g0 * g0
+        e01 = b00 * p10 + b01 * p11 - h0 * g1 - g0 * h1 + d * g0 * g1
+        e11 = b10 * p10 + b11 * p11 - 2.0 * h1 * g1 + d * g1 * g1
         u0, u1 = ratio * (h0 - g0 * d), ratio * (h1 - g1 * d)
         self.p = np.array([[e00, e01, u0], [e01, e11, u1], [u0, u1, ratio * ratio * d]])
+        self.pz = _sandwich2(phi, self.pz, qz)
+        if self.pb is not None:
+            self.pb = _sandwich2(phi, self.pb, qb)
 
     def replace_measurement(self, var_new: float, corr: float) -> None:
         """The held measurement becomes a new one of variance ``var_new``, correlated ``corr``
@@ -99,11 +145,15 @@ class ErrorCovariance:
         t[:n, 0] -= k
         t[:n, n] = -k
         self.p = t @ self.p @ t.T
+        tn = t[:n, :n]
+        self.pz = (tn @ np.array(self.pz).reshape(n, n) @ tn.T).ravel().tolist()
+        if self.pb is not None:
+            self.pb = (tn @ np.array(self.pb).reshape(n, n) @ tn.T).ravel().tolist()
 
     def innovation_variance(self) -> float:
         """Variance of the innovation ``ν = y − ẑ = e_z + ε`` (``e = x − x̂``)."""
         n = self.n
-        return float(self.p[0, 0] + self.p[n, n] + 2.0 * self.p[0, n])
+        return float(self.var_z + self.p[n, n] + 2.0 * self.p[0, n])
 
     def start(self, var_meas: float, var_second: float) -> None:
         """A filter initialised at a measurement: ``e_z = −ε`` exactly."""
@@ -114,6 +164,9 @@ class ErrorCovariance:
         if n == 2:
             p[1, 1] = var_second
         self.p = p
+        self.pz = [0.0] * (n * n)
+        if self.pb is not None:
+            self.pb = [0.0] * (n * n)
 
     def copy_from(self, other: ErrorCovariance) -> None:
         """Take ``other``'s depth error and measurement block (a seeded filter; others zeroed)."""
@@ -123,6 +176,10 @@ class ErrorCovariance:
         idx_other = [0, m] if n == 1 else [0, 1, m]
         p[np.ix_(idx_self, idx_self)] = other.p[np.ix_(idx_other, idx_other)]
         self.p = p
+        self.pz = [other.pz[0]] if n == 1 else list(other.pz)
+        if self.pb is not None:
+            src = other.pb if other.pb is not None else [0.0] * (m * m)
+            self.pb = [src[0]] if n == 1 else list(src)
 
 
 class Uncertainty:
@@ -141,11 +198,11 @@ class Uncertainty:
         self.adapt = adapt
         # λ: true/stated measurement variance, from consecutive size measurements (no dynamics)
         self.scale = InnovationScale(adapt)
-        # κ²: the KF's innovations against their predicted variance (model mismatch of any kind);
-        # never below 1: innovations smaller than predicted are what slowly varying measurement
-        # errors give (the filter follows them), not a sign of a smaller error (on paper-circle
-        # κ² fell to 0.25 while the error was 3-5x the σ; docs/estimation.md §9)
-        self.consistency = InnovationScale(replace(adapt, scale_min=1.0))
+        # κ²: the KF's normalised innovations (NIS) against their predicted variance, a
+        # diagnostic only since docs/estimation.md §17: it measured what ι measures (slow
+        # measurement errors) plus the measurement noise λ already scales, and its floor of 1
+        # only ever widened the σ
+        self.consistency = InnovationScale(adapt)
         self.offset = TimeOffset(adapt)
         self.slow = SlowErrors(adapt)
         self.drift = DriftRate(adapt)
@@ -174,19 +231,16 @@ class Uncertainty:
 
     def sigma(self, name: str) -> float | None:
         """Published σ of estimator ``name`` (None before the filters start)."""
-        if name == "measured":
-            return None if self.measured_sigma is None else self.measured_sigma * self.factor
-        err = self.errors.get(name)
-        if err is None or not self.started:
-            return None
-        return math.sqrt(err.var_z * self.consistency.scale * self.slow.factor) * self.factor
+        return self.sigmas({name: 0.0})[name]
 
     def sigmas(self, depth: dict[str, float | None]) -> dict[str, float | None]:
-        """Published σ of every estimator with a value in ``depth`` (None for the others)."""
+        """Published σ of every estimator with a value in ``depth`` (None for the others):
+        ``√(P_zz ι) × t-factor`` (docs/estimation.md §17)."""
         if not self.started:
             return dict.fromkeys(depth)
+        self._set_weights()
         f = self.factor
-        kappa = math.sqrt(self.consistency.scale * self.slow.factor)
+        iota = math.sqrt(self.slow.factor)
         out: dict[str, float | None] = {}
         for name, value in depth.items():
             err = self.errors.get(name)
@@ -195,18 +249,27 @@ class Uncertainty:
             elif name == "measured":
                 out[name] = None if self.measured_sigma is None else self.measured_sigma * f
             else:
-                out[name] = None if err is None else math.sqrt(err.var_z) * kappa * f
+                out[name] = None if err is None else math.sqrt(err.var_z) * iota * f
         return out
 
     @property
     def factor(self) -> float:
-        """Student-t inflation for the degrees of freedom of the noise estimates."""
-        return max(self.scale.factor, self.consistency.factor)
+        """Student-t inflation for the degrees of freedom of the noise estimate λ."""
+        return self.scale.factor
 
     def start(self, sigma_meas: float, frames: tuple[int, ...]) -> None:
         """The Kalman filter starts at a measurement of σ ``sigma_meas`` (the others follow)."""
         var = sigma_meas * sigma_meas
-        self.errors["kf"].start(var, self.noise.sigma_b0**2)
+        kf = self.errors["kf"]
+        n = self.noise
+        if n.sigma_b > 0 and kf.pb is not None:
+            # b's prior σ_b0 is the KF's model of a disturbance, as its b walk is: carried in
+            # the b part (as σ_b0²/σ_b² of a unit walk), so it goes when the data's process
+            # noise replaces the KF's (on a rigid target b shows in the size invariant)
+            kf.start(var, 0.0)
+            kf.pb[3] = (n.sigma_b0 / n.sigma_b) ** 2
+        else:
+            kf.start(var, n.sigma_b0**2)
         for name in FIXED_GAIN:
             self.errors[name].copy_from(self.errors["kf"])
         self._frames = frames
@@ -217,40 +280,49 @@ class Uncertainty:
         """Propagate every error covariance over one step of the filters."""
         if not self.started or dt <= 0:
             return
-        qz, qb = self._process_noise(z, dt)
-        q2 = (qz, 0.0, 0.0, qb)
+        self._set_weights()
+        # unit process noises: a random walk of ln z (variance z² dt) and of b (variance dt)
+        qz = (z * z * dt, 0.0, 0.0, 0.0)
+        qb = (0.0, 0.0, 0.0, dt)
         lam = -rho
         # CF1: ẑ' = −k ẑ + k y + ψ
         k = self._cf1_k
         e = math.exp(-k * dt)
         near = abs(lam + k) * dt < 1e-9
         g1 = k * dt * e if near else k * (math.exp(lam * dt) - e) / (lam + k)
-        self.errors["cf1"].propagate((e, 0.0, 0.0, 0.0), (g1, 0.0), ratio, q2)
+        self.errors["cf1"].propagate((e, 0.0, 0.0, 0.0), (g1, 0.0), ratio, qz, qb)
         k1, k2 = self._cf2
         phi, g = exp_input2_floats((-k1, 1.0, -k2, 0.0), (k1, k2), lam, dt)
-        self.errors["cf2"].propagate(phi, g, ratio, q2)
+        self.errors["cf2"].propagate(phi, g, ratio, qz, qb)
         gl = self._lpv
         kl = gl.k1_0 - min(max(rho, gl.rho_min), gl.rho_max)
         phi, g = exp_input2_floats((-rho - kl, 1.0, -gl.k2, 0.0), (kl, gl.k2), lam, dt)
-        self.errors["lpv"].propagate(phi, g, ratio, q2)
+        self.errors["lpv"].propagate(phi, g, ratio, qz, qb)
         # the KF's own transition (its b enters through g_k), no held measurement in between;
-        # Q as DepthKF.predict: the b random walk integrated over the step
+        # its b walk as DepthKF.predict: integrated over the step
         lr = -math.log(max(ratio, 1e-6))
         gk = dt if abs(lr) < 1e-9 else dt * (1.0 - ratio) / lr
-        q_kf = (qz + qb * dt * dt / 3.0, qb * dt / 2.0, qb * dt / 2.0, qb)
-        self.errors["kf"].propagate((ratio, gk, 0.0, 1.0), (0.0, 0.0), ratio, q_kf)
+        qb_kf = (dt * dt * dt / 3.0, dt * dt / 2.0, dt * dt / 2.0, dt)
+        self.errors["kf"].propagate((ratio, gk, 0.0, 1.0), (0.0, 0.0), ratio, qz, qb_kf)
 
-    def _process_noise(self, z: float, dt: float) -> tuple[float, float]:
-        """(q_z, q_b) over ``dt`` at depth ``z``: a random walk of ``ln z`` at the size
-        invariant's drift rate (DriftRate) once it is estimated; the Kalman filter's
-        (σ_ρ, σ_b) before that, and always with ``process_noise = "kf"``."""
+    def process_weights(self) -> tuple[float, float]:
+        """(w_z, w_b): intensities of the ln z and b random walks. The size invariant's drift
+        rate (DriftRate) once it is estimated, with no separate b walk (on a rigid target any
+        disturbance of ż = −ρz shows in the size invariant, which q̂ already carries); the
+        Kalman filter's (σ_ρ², σ_b²) before that, and always with ``process_noise = "kf"``.
+        Applied to every estimator's whole history (ErrorCovariance)."""
         n = self.noise
         q = self.drift.rate
         if q is None or self.adapt.process_noise == "kf":
-            return (n.sigma_rho * z) ** 2 * dt, n.sigma_b**2 * dt
-        # b's own random walk is not added: on a rigid target any disturbance of ż = −ρz
-        # shows in the size invariant, which q already carries
-        return q * z * z * dt, 0.0
+            return n.sigma_rho**2, n.sigma_b**2
+        return q, 0.0
+
+    def _set_weights(self) -> None:
+        w = self.process_weights()
+        for err in self.errors.values():
+            err.weights = w
+            if w[1] == 0.0 and err.pb is not None:
+                err.drop_b_walk()  # the data's process noise has no b walk: for good
 
     def observe_size(
         self,
@@ -308,8 +380,8 @@ class Uncertainty:
     def innovation_variance(self, sigma_fit: float, frames: tuple[int, ...]) -> float:
         """Predicted variance of the KF's innovation for a burst of fit σ ``sigma_fit`` on
         ``frames`` (its error and the new measurement's, with the current λ; κ² not included)."""
-        probe = ErrorCovariance(2)
-        probe.p = self.errors["kf"].p.copy()
+        self._set_weights()
+        probe = self.errors["kf"].clone()
         probe.replace_measurement(
             self.measurement_sigma(sigma_fit) ** 2, shared_frame_correlation(self._frames, frames)
         )
@@ -319,3 +391,15 @@ class Uncertainty:
         """The fixed-gain filters were seeded from the KF: they inherit its error covariance."""
         for name in FIXED_GAIN:
             self.errors[name].copy_from(self.errors["kf"])
+
+
+def _sandwich2(phi: Mat2, p: list[float], q: Mat2) -> list[float]:
+    """``Φ P Φᵀ + Q`` of row-major 2×2 floats (P symmetric)."""
+    p00, p01, p10, p11 = phi
+    a00, a01, _, a11 = p
+    b00, b01 = p00 * a00 + p01 * a01, p00 * a01 + p01 * a11
+    b10, b11 = p10 * a00 + p11 * a01, p10 * a01 + p11 * a11
+    e00 = b00 * p00 + b01 * p01 + q[0]
+    e01 = b00 * p10 + b01 * p11 + q[1]
+    e11 = b10 * p10 + b11 * p11 + q[3]
+    return [e00, e01, e01, e11]
