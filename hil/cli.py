@@ -146,6 +146,21 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="start with an empty NUMBA_CACHE_DIR (a fresh install without the kernel warm-up)",
     )
+    soak.add_argument(
+        "--probe",
+        type=int,
+        default=None,
+        metavar="DEPTH",
+        help="memory probe inside the daemon (hil.memprobe): RssAnon, glibc heap (mallinfo2), "
+        "and with DEPTH > 0 tracemalloc at that traceback depth (slows the daemon)",
+    )
+    soak.add_argument(
+        "--daemon-env",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra environment for the daemon (A/B runs, e.g. GLIBC_TUNABLES=...); repeatable",
+    )
 
     table = sub.add_parser("table", help="print reports as the README's markdown results table")
     table.add_argument("reports", type=Path, nargs="+", help="report.json files or directories")
@@ -195,6 +210,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 args.scenario,
                 args.window,
                 fresh_kernel_cache=args.fresh_kernel_cache,
+                probe=args.probe,
+                daemon_env=dict(kv.split("=", 1) for kv in args.daemon_env),
             )
         return _run(args)
     except KeyboardInterrupt:

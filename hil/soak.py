@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from hil import memprobe
+
 # The bench's own helpers (private to their module today; one place to start a broker and read
 # /proc).
 from hil.realtime import (
@@ -73,6 +75,8 @@ MAX_LATENCY_SAMPLES = 30 * 86_400
 # Delivery times of the last frames kept to match estimates against: 10 s at 30 fps.
 TRUTHS_KEPT = 300
 MIB = 1024.0
+# hil.memprobe's samples, in --out.
+PROBE_FILE = "probe.jsonl"
 # The simulator's threads (kernel names set by hil.threadnames): its frame source renders in
 # "sim-render" (drivers/sim/source.py), its VISCA device serves from "sim-camera"
 # (dffd/daemon/simthread.py). Older trees rendered in asyncio's default executor ("asyncio_0",
@@ -106,14 +110,23 @@ def run_soak(
     window_s: float = 0,
     *,
     fresh_kernel_cache: bool = False,
+    probe: int | None = None,
+    daemon_env: dict[str, str] | None = None,
 ) -> int:
-    """Run the soak for ``seconds`` after the first estimate; write soak.json and soak.png."""
+    """Run the soak for ``seconds`` after the first estimate; write soak.json and soak.png.
+
+    ``probe`` (None: off) runs the daemon under :mod:`hil.memprobe`, with tracemalloc at that
+    traceback depth when > 0; its samples go to ``probe.jsonl`` and a summary into soak.json.
+    ``daemon_env`` is added to the daemon's environment (A/B runs).
+    """
     window = window_s if window_s > 0 else min(DEFAULT_WINDOW_S, max(seconds / 10.0, 1.0))
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     load_before = os.getloadavg()
     try:
-        trace = asyncio.run(_soak(seconds, scenario, out_dir, fresh_kernel_cache))
+        trace = asyncio.run(
+            _soak(seconds, scenario, out_dir, fresh_kernel_cache, probe, daemon_env or {})
+        )
     except (RuntimeError, TimeoutError) as exc:
         why = str(exc) or "no estimate in time"
         print(f"hil soak: {why}; see {out_dir / 'daemon.log'}", file=sys.stderr)
@@ -121,6 +134,12 @@ def run_soak(
     result = summarize(trace, seconds, window, sim_delivery_lag_ms())
     result["scenario"] = scenario
     result["fresh_kernel_cache"] = fresh_kernel_cache
+    if daemon_env:
+        result["daemon_env"] = daemon_env
+    if probe is not None:
+        result["probe"] = summarize_probe(
+            out_dir / PROBE_FILE, trace.started, trace.first_estimate, result
+        )
     # Where and when: a long soak's figures are quoted by the bench (hil.benchmarks), so they
     # must say what they were measured on. Load above 2 means the 2 cores were shared.
     result["t"] = started
@@ -233,6 +252,54 @@ def summarize(
     }
 
 
+def summarize_probe(
+    path: Path, started: float, first_estimate: float | None, result: dict[str, Any]
+) -> dict[str, Any]:
+    """Slopes (MiB/h, over the soak's slope window) of what the probe saw, and the growth sites.
+
+    The probe's clock starts with the daemon process (a few ms after ``started``); its samples
+    are shifted to the soak's time axis (t = 0 at the first estimate).
+    """
+    try:
+        rows = [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
+    except (OSError, ValueError) as exc:
+        return {"missing": f"{path}: {exc}"}
+    shift = (first_estimate if first_estimate is not None else started) - started
+    slope_from = result["rss_mib"]["slope_from_s"]
+    series: dict[str, list[tuple[float, float]]] = {}
+    for row in rows:
+        t = row["t_s"] - shift
+        info = row.get("mallinfo2") or {}
+        values = {
+            "rss_anon": row["rss_anon_kib"] / MIB,
+            "heap_from_os": (info.get("arena", 0) + info.get("hblkhd", 0)) / MIB / MIB,
+            "heap_in_use": (info.get("uordblks", 0) + info.get("hblkhd", 0)) / MIB / MIB,
+            "heap_free": info.get("fordblks", 0) / MIB / MIB,
+        }
+        for kind, kib in (row.get("anon_by_mapping_kib") or {}).items():
+            values[f"anon_{kind}"] = kib / MIB if not kind.endswith("_count") else float(kib)
+        if "traced_bytes" in row:
+            values["traced"] = row["traced_bytes"] / MIB / MIB
+            values["numpy"] = row["numpy_bytes"] / MIB / MIB
+            values["gc_objects"] = float(row["gc_objects"])
+            values["asyncio_tasks"] = float(row["asyncio_tasks"])
+        for key, v in values.items():
+            series.setdefault(key, []).append((t, v))
+    out: dict[str, Any] = {"samples": len(rows)}
+    for key, pts in series.items():
+        steady = [(t, v) for t, v in pts if t >= slope_from]
+        out[key] = {
+            "last": pts[-1][1],
+            "slope_per_hour": _slope_per_hour(steady),
+            "min_steady": min((v for _, v in steady), default=None),
+            "max_steady": max((v for _, v in steady), default=None),
+        }
+    last_growth = [r["top_growth"] for r in rows if "top_growth" in r]
+    if last_growth:
+        out["top_growth_since_baseline"] = last_growth[-1]
+    return out
+
+
 def format_summary(result: dict[str, Any]) -> str:
     """Human-readable lines of a soak result."""
 
@@ -326,7 +393,14 @@ def _slope_per_hour(points: list[tuple[float, float]]) -> float | None:
     return slope * 3600.0 if math.isfinite(slope) else None
 
 
-async def _soak(seconds: float, scenario: str, out_dir: Path, fresh_kernel_cache: bool) -> _Trace:
+async def _soak(  # noqa: PLR0917 - one private call site
+    seconds: float,
+    scenario: str,
+    out_dir: Path,
+    fresh_kernel_cache: bool,
+    probe: int | None,
+    daemon_env: dict[str, str],
+) -> _Trace:
     work = Path(tempfile.mkdtemp(prefix="hil-soak-"))
     port = free_port()
     broker = start_mosquitto(work, port)
@@ -345,11 +419,18 @@ async def _soak(seconds: float, scenario: str, out_dir: Path, fresh_kernel_cache
     )
     if fresh_kernel_cache:
         env["NUMBA_CACHE_DIR"] = str(work / "numba-cache")
+    shim = "hil.threadnames"
+    if probe is not None:
+        shim = "hil.memprobe"
+        (out_dir / PROBE_FILE).unlink(missing_ok=True)
+        env[memprobe.OUT_ENV] = str(out_dir / PROBE_FILE)
+        env[memprobe.TRACEMALLOC_ENV] = str(probe)
+    env.update(daemon_env)
     trace = _Trace(started=time.monotonic())
     with (out_dir / "daemon.log").open("wb") as log:
         # The daemon is this repository's own CLI run with this interpreter.
-        daemon = subprocess.Popen(  # noqa: ASYNC220 - started once, stopped in finally
-            [sys.executable, "-m", "hil.threadnames", "dffd", "run", "--no-console"],
+        daemon = subprocess.Popen(  # noqa: ASYNC220, S603 - started once, stopped in finally
+            [sys.executable, "-m", shim, "dffd", "run", "--no-console"],
             cwd=REPO_ROOT,
             env=env,
             stdout=log,

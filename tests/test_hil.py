@@ -359,3 +359,53 @@ def test_bench_scores_on_a_table_dffd_calibrate_fitted(tmp_path: Path) -> None:
     meta = json.loads((out / "recording" / "short-static" / "meta.json").read_text("utf-8"))
     assert meta["lens"]["name"] == lens.name
     assert calibration_error(lens, lens)["depth_err_rms_m"] == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.timeout(120)
+def test_soak_probe_samples_the_heap_inside_the_daemon(tmp_path: Path) -> None:
+    out = tmp_path / "soak"
+    args = ["soak", "--seconds", "3", "--window", "1", "--out", str(out), "--probe", "0"]
+    args += ["--daemon-env", "HIL_MEMPROBE_PERIOD_S=0.5"]
+    assert hil_main(args) == 0
+    result = json.loads((out / "soak.json").read_text())
+    assert result["daemon_env"] == {"HIL_MEMPROBE_PERIOD_S": "0.5"}
+    probe = result["probe"]
+    assert probe["samples"] >= 4  # ≥ 2 s of start-up plus 3 s of run at 0.5 s
+    assert probe["rss_anon"]["last"] > 0
+    # glibc's heap: what is in use is at most what was taken from the kernel
+    assert 0 < probe["heap_in_use"]["last"] <= probe["heap_from_os"]["last"]
+    assert "traced" not in probe  # tracemalloc only with --probe N > 0
+
+
+def test_probe_summary_fits_slopes_over_the_soak_window(tmp_path: Path) -> None:
+    from hil.soak import summarize_probe
+
+    rows = [
+        {
+            "t_s": t,
+            "rss_anon_kib": 1024 * (100 + t / 3600.0),  # +1 MiB/h
+            "rss_file_kib": 0,
+            "mallinfo2": {
+                "arena": 50 << 20,
+                "hblkhd": 0,
+                "uordblks": 40 << 20,
+                "fordblks": 10 << 20,
+            },
+            "traced_bytes": 30 << 20,
+            "numpy_bytes": 5 << 20,
+            "gc_objects": 1000,
+            "asyncio_tasks": 12,
+            "top_growth": [{"site": "x.py:1", "size_diff_b": 10, "size_b": 20, "count_diff": 1}],
+        }
+        for t in range(0, 1000, 10)
+    ]
+    path = tmp_path / "probe.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    # the daemon started 2 s before its first estimate: the probe's clock is shifted by 2 s
+    out = summarize_probe(path, 0.0, 2.0, {"rss_mib": {"slope_from_s": 500.0}})
+    assert out["samples"] == len(rows)
+    assert out["rss_anon"]["slope_per_hour"] == pytest.approx(1.0)
+    assert out["heap_in_use"]["slope_per_hour"] == pytest.approx(0.0, abs=1e-9)
+    assert out["heap_free"]["last"] == pytest.approx(10.0)
+    assert out["asyncio_tasks"]["max_steady"] == 12
+    assert out["top_growth_since_baseline"][0]["site"] == "x.py:1"
