@@ -66,6 +66,7 @@ from typing import TYPE_CHECKING, Any
 
 from dffd.config import ConfigError, DffdConfig, load_config, problems
 from dffd.core.lens import Lens, LensError
+from dffd.daemon import allocator
 from dffd.daemon.actuators import Actuators
 from dffd.daemon.commands import Commands
 from dffd.daemon.console import Console, ConsoleSnapshot
@@ -131,6 +132,7 @@ RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
 # -- CLI ----------------------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
     """Run until SIGTERM/SIGINT (or ``--duration``); return the exit code."""
+    allocator.configure()  # before the daemon's threads allocate (see dffd.daemon.allocator)
     try:
         config = load_config(args.config)
     except ConfigError as exc:

@@ -1,0 +1,35 @@
+"""The daemon's allocator settings (dffd.daemon.allocator): glibc's, unless the user chose."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from dffd.daemon import allocator
+
+glibc_only = pytest.mark.skipif(
+    not sys.platform.startswith("linux") or allocator._glibc() is None, reason="glibc only"
+)
+
+
+@glibc_only
+def test_configure_applies_on_glibc() -> None:
+    assert allocator.configure({}) is True
+
+
+@pytest.mark.parametrize(
+    "env",
+    [
+        {"MALLOC_ARENA_MAX": "4"},
+        {"MALLOC_TRIM_THRESHOLD_": "131072"},
+        {"GLIBC_TUNABLES": "glibc.malloc.arena_max=0"},
+    ],
+)
+def test_a_users_own_allocator_settings_are_kept(env: dict[str, str]) -> None:
+    assert allocator.configure(env) is False
+
+
+@glibc_only
+def test_unrelated_tunables_do_not_count_as_a_choice() -> None:
+    assert allocator.configure({"GLIBC_TUNABLES": "glibc.rtld.optional_static_tls=512"}) is True
