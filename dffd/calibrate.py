@@ -246,7 +246,10 @@ async def calibrate_table(
     f_number = getattr(rig, "f_number", None)
     settle = latency + SETTLE_EXTRA_FRAMES
     repeated: list[float] = []
-    for _ in range(MAX_SWEEPS - 1):
+    # each round sweeps again what the check flags; a depth is flagged only while it has had
+    # fewer than MAX_SWEEPS sweeps, so the rounds end (a flagged neighbour can delay a third
+    # sweep of the depth that pulled it by a round)
+    for _ in range(2 * MAX_SWEEPS):
         table = fit_table(name, rig, points, f_number)
         check = check_table(table, rig) if table.fit is not None else None
         if check is None or not check.repeat:

@@ -45,9 +45,10 @@ MAX_SWEEPS = 3  # sweeps of one depth at most (the first and two repeats)
 # Repeated sweeps of one depth disagree when their χ² per degree of freedom exceeds this: more
 # scatter than their σ (a 95 % point of χ² with 1-2 degrees of freedom is 3.0-3.8).
 SWEEPS_DISAGREE_CHI2 = 4.0
-# Depths set aside as suspects stop while this many remain to check them against (a cubic and
-# its leave-one-out need five).
-MIN_CHECKED_DEPTHS = 5
+# Depths set aside as suspects stop while this many remain to check them against (each gives
+# its bracket's two ends: four depths and the infinity anchor hold a cubic and its
+# leave-one-depth-out).
+MIN_CHECKED_DEPTHS = 4
 BOOTSTRAP_SAMPLES = 40  # resampled models (the σ's own relative error ~ 1/sqrt(2·40) = 11 %)
 BOOTSTRAP_SEED = 0  # fixed: the same sweeps give the same table σ
 
@@ -93,10 +94,13 @@ class TableCheck:
                 line += f"; {d.n_sweeps} sweeps, spread {d.spread_v_um:.3f} µm"
                 if d.sweeps_chi2 > SWEEPS_DISAGREE_CHI2:
                     line += " (they disagree: sweep noise)"
+            if not math.isfinite(d.z_score):
+                line += " (not fitted: no closed-loop bracket inside the focus range)"
             if d.z_m in self.repeat:
                 line += "  SWEEP AGAIN"
             out.append(line)
-        rms = math.sqrt(float(np.mean([d.z_score**2 for d in self.depths])))
+        scores = [d.z_score for d in self.depths if math.isfinite(d.z_score)]
+        rms = math.sqrt(float(np.mean(np.square(scores)))) if scores else math.nan
         verdict = (
             f"table uncertainty (1σ): {min(d.sigma_depth_mm for d in self.depths):.1f}-"
             f"{max(d.sigma_depth_mm for d in self.depths):.1f} mm of depth over the calibrated "
@@ -112,45 +116,57 @@ class TableCheck:
 
 
 def check_table(table: TableFit, rig: FocusOptics) -> TableCheck:
-    """The table's σ per depth (bootstrap), the leave-one-out z-scores and the depths to sweep
-    again; ``table`` must carry a model (at least MIN_MODEL_DEPTHS depths)."""
+    """The table's σ per depth (bootstrap), the leave-one-depth-out z-scores and the depths to
+    sweep again; ``table`` must carry a model (at least MIN_MODEL_DEPTHS depths)."""
     if table.fit is None:
         raise ValueError("check_table needs a table fitted with a focus model")
     f = rig.focal_length_mm
     span = (float(rig.focus_range[0]), float(rig.focus_range[1]))
     like = table.fit.model
-    points = list(table.points)
+    fitted = list(table.model_points)
+    points = list(table.points)  # one per depth: where the closed loop reads it
+    depth_of = np.array([q.placed_m for q in fitted])
+    sigma_fit = _sigmas(fitted)
     at = np.array([p.at for p in points])
-    sigma_counts = np.array([p.sigma_counts for p in points])
-    sigma_counts = np.where(
-        np.isfinite(sigma_counts) & (sigma_counts > 0), sigma_counts, np.nanmedian(sigma_counts)
-    )
     grid = np.asarray(table.lens.focus_counts, dtype=np.float64)
-    sigma_grid = _bootstrap_sigma_v_um(points, sigma_counts, f, span, like, counts=np.r_[grid, at])
+    sigma_grid = _bootstrap_sigma_v_um(
+        fitted, sigma_fit, depth_of, f=f, span=span, like=like, counts=np.r_[grid, at]
+    )
     sigma_table = sigma_grid[len(grid) :]
     slope = np.abs(np.gradient(like.v_mm(grid), grid))  # mm of v per count
-    slope_at = np.interp(at, grid, slope)
-    sigma_vertex = sigma_counts * slope_at * 1e3
+    # each depth's own σ (its reading's; a depth's two bracket ends share it) and the table's
+    fitted_depths = [p.placed_m for p in points if (depth_of == p.placed_m).any()]
+    sigma_vertex = np.array(
+        [
+            float(np.mean(sigma_fit[depth_of == p.placed_m] * np.interp(
+                [q.at for q in fitted if q.placed_m == p.placed_m], grid, slope
+            ))) * 1e3
+            if p.placed_m in fitted_depths
+            else math.nan
+            for p in points
+        ]
+    )  # fmt: skip
     sigma_both = np.sqrt(sigma_vertex**2 + sigma_table**2)
     # One bad depth bends every fit it is in, so every other depth's leave-one-out residual too
     # (6 depths, one placed 0.3 m off: all six were flagged). The worst beyond REPEAT_SIGMA is
     # set aside and the others checked without it, until none is beyond.
     aside = np.zeros(len(points), dtype=bool)
+    fitted_mask = np.isfinite(sigma_vertex)
     while True:
-        loo = _leave_one_out_um(points, aside, f, span, like)
+        loo = _leave_one_depth_out_um(points, fitted, aside, f=f, span=span, like=like)
         z = loo / sigma_both
-        worst = int(np.argmax(np.where(aside, -np.inf, np.abs(z))))
-        if abs(z[worst]) <= REPEAT_SIGMA or (~aside).sum() <= MIN_CHECKED_DEPTHS:
+        worst = int(np.argmax(np.where(aside | ~fitted_mask, -np.inf, np.abs(z))))
+        if abs(z[worst]) <= REPEAT_SIGMA or (~aside & fitted_mask).sum() <= MIN_CHECKED_DEPTHS:
             break
         aside[worst] = True
-    scale = max(1.0, math.sqrt(float(np.mean(z**2))))
+    scale = max(1.0, math.sqrt(float(np.mean(z[fitted_mask] ** 2)))) if fitted_mask.any() else 1.0
     depths = []
     repeat = []
     for i, p in enumerate(points):
         v = p.v_mm
         sigma_v = float(sigma_table[i]) * scale
         dz_dv = f * f / (v - f) ** 2  # |dz/dv| of the thin lens z = f v / (v − f)
-        spread = p.spread_counts * slope_at[i] * 1e3
+        spread = p.spread_counts * float(np.interp(p.at, grid, slope)) * 1e3
         chi2 = p.sweeps_chi2
         depths.append(
             DepthCheck(
@@ -161,7 +177,7 @@ def check_table(table: TableFit, rig: FocusOptics) -> TableCheck:
         # once swept again, the depth's σ carries its sweeps' disagreement (combine_sweeps) and
         # its z-score shrinks: sweeps that still disagree ask for another, whatever the z-score
         flagged = bool(aside[i]) if p.n_sweeps == 1 else chi2 > SWEEPS_DISAGREE_CHI2
-        if flagged and p.n_sweeps < MAX_SWEEPS:
+        if flagged and p.n_sweeps < MAX_SWEEPS and fitted_mask[i]:
             repeat.append(p.z_m)
     return TableCheck(
         tuple(depths),
@@ -173,37 +189,58 @@ def check_table(table: TableFit, rig: FocusOptics) -> TableCheck:
 
 
 # -- private helpers --------------------------------------------------------------------------
-def _leave_one_out_um(
+def _sigmas(points: list[DepthPoint]) -> FloatArray:
+    """The points' σ in counts (a point without one: the median of the others)."""
+    sigma = np.array([p.sigma_counts for p in points])
+    ok = np.isfinite(sigma) & (sigma > 0)
+    fallback = float(np.median(sigma[ok])) if ok.any() else 1.0
+    return np.asarray(np.where(ok, sigma, fallback), dtype=np.float64)
+
+
+def _leave_one_depth_out_um(
     points: list[DepthPoint],
+    fitted: list[DepthPoint],
     aside: npt.NDArray[np.bool_],
+    *,
     f: float,
     span: tuple[float, float],
     like: FocusModel,
 ) -> FloatArray:
-    """Each depth's v less the model fitted without it and without the depths set ``aside``."""
+    """Per depth: the mean of its fitted points' v less the model fitted without that depth
+    and without the depths set ``aside`` (NaN: a depth not in the fit)."""
     out = []
-    for i, p in enumerate(points):
-        others = [q for j, q in enumerate(points) if j != i and not aside[j]]
-        out.append((p.v_mm - float(model_with_structure(others, f, span, like).v_mm(p.at))) * 1e3)
+    aside_depths = {p.placed_m for p, a in zip(points, aside, strict=True) if a}
+    for p in points:
+        mine = [q for q in fitted if q.placed_m == p.placed_m]
+        if not mine:
+            out.append(math.nan)
+            continue
+        others = [q for q in fitted if q.placed_m != p.placed_m and q.placed_m not in aside_depths]
+        model = model_with_structure(others, f, span, like)
+        out.append(float(np.mean([(q.v_mm - float(model.v_mm(q.at))) * 1e3 for q in mine])))
     return np.asarray(out, dtype=np.float64)
 
 
 def _bootstrap_sigma_v_um(
     points: list[DepthPoint],
     sigma_counts: FloatArray,
+    depth_of: FloatArray,
+    *,
     f: float,
     span: tuple[float, float],
     like: FocusModel,
-    *,
     counts: FloatArray,
 ) -> FloatArray:
-    """σ (µm) of the model's v at ``counts`` over models refitted to vertices moved by their σ."""
+    """σ (µm) of the model's v at ``counts`` over models refitted to points moved by their σ
+    (the points of one depth together: a sweep's bracket ends move with its reading)."""
     rng = np.random.default_rng(BOOTSTRAP_SEED)
+    depths = np.unique(depth_of)
     samples = []
     for _ in range(BOOTSTRAP_SAMPLES):
+        draw = dict(zip(depths.tolist(), rng.normal(size=len(depths)).tolist(), strict=True))
         moved = [
-            dataclasses.replace(p, counts_exact=p.at + float(rng.normal()) * s)
-            for p, s in zip(points, sigma_counts, strict=True)
+            dataclasses.replace(p, counts_exact=p.at + draw[d] * s)
+            for p, s, d in zip(points, sigma_counts, depth_of.tolist(), strict=True)
         ]
         samples.append(model_with_structure(moved, f, span, like).v_mm(counts))
     return np.asarray(np.std(np.array(samples), axis=0, ddof=1) * 1e3, dtype=np.float64)

@@ -31,8 +31,10 @@ than :data:`MIN_MODEL_DEPTHS` depths the table is the points themselves (:func:`
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -40,6 +42,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.interpolate import BSpline, make_smoothing_spline
 
+from dffd.calibrate_vertex import closed_loop_vertex
 from dffd.core.focus import PlanConfig
 from dffd.core.lens import MM_PER_M, Lens
 
@@ -57,8 +60,13 @@ OUTLIER_SIGMA = 4.0  # robust σ beyond which a point is dropped (a frame with a
 MAD_TO_SIGMA = 1.4826  # σ of a normal distribution per median absolute deviation
 MIN_POINTS_PER_COEF = 1  # points beyond the coefficients needed for a leave-one-out choice
 MAX_OUTLIER_FRACTION = 0.2  # never drop more than this fraction of the depths
-SPLINE_MIN_POINTS = 6  # a residual spline needs this many depths (scipy: at least 5)
+SPLINE_MIN_POINTS = 6  # a residual spline needs this many depths (scipy: 5 points)
 MAX_BASE_DEGREE = 3  # the polynomial under the spline: at most cubic (the spline does the rest)
+# Smoothing of the residual spline (weights normalised to a mean of one, u in [0, 1]): from
+# nearly interpolating to nearly straight, a decade apart; the one that predicts left-out depths
+# best is kept (or no spline). Generalised cross-validation on single points chose no smoothing
+# (it interpolated the scatter: two points of one sweep vouch for each other).
+SPLINE_LAMBDAS = tuple(10.0**k for k in range(-9, 1))
 TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smooth model: exact)
 # Half-width of the vertex window of the refit in v, in px of blur radius: the estimator's own
 # burst bracket (PlanConfig.outer_blur_px, 3 px), where a measure's lean on a lens is the one its
@@ -66,7 +74,11 @@ TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smoot
 # table 14 mm rms, bench 28 mm; 3 px -> 3.6 mm, 8.8 mm (true table: 8.0 mm). On the aberrated
 # optics the bench is the same with 1 or 3 px (docs/estimation.md §10).
 VERTEX_WINDOW_BLUR_PX = PlanConfig().outer_blur_px
-REFIT_PASSES = 2  # vertex refits in v through the latest model (the second moves < 0.1 µm)
+# Refit passes through the latest model's polynomial (the bracket ends move < 0.1 µm after ~4).
+# The axis is the polynomial, not the residual spline: through the spline the passes feed each
+# reading's scatter back into the axis (reference optics seed 1: table 2.3 -> 11.1 mm rms).
+REFIT_PASSES = 8
+SETTLED_SIGMA = 0.05  # the passes stop when no bracket end moves by more than this × its σ
 MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselves
 # Repeated sweeps of one depth (combine_sweeps): with three or more, a sweep whose vertex is more
 # than this many of its σ from the others' median is dropped (a disturbed sweep: the target
@@ -93,6 +105,16 @@ class DepthPoint:
     n_sweeps: int = 1  # sweeps of this depth combined into this point (combine_sweeps)
     spread_counts: float = math.nan  # their vertices' standard deviation (NaN: one sweep)
     sweeps_chi2: float = math.nan  # their χ² per degree of freedom about the mean (NaN: one)
+    # how the vertex was read: "least squares" (fit_vertex), "closed loop" (the burst bracket's
+    # fixed point) or "closed loop, pinned" (the bracket shifted at an end of the focus range)
+    rule: str = "least squares"
+    # a bracket end stands for v ∓ h of the sweep's depth; the depth the target was placed at
+    target_m: float = math.nan  # NaN: z_m itself
+
+    @property
+    def placed_m(self) -> float:
+        """The depth the target was placed at for this sweep."""
+        return self.z_m if math.isnan(self.target_m) else self.target_m
 
     @property
     def at(self) -> float:
@@ -123,6 +145,7 @@ class FocusModel:
     focal_length_mm: float
     spline: BSpline | None = None
     spline_u: tuple[float, float] = (0.0, 1.0)  # the range of u the spline was fitted over
+    spline_lam: float = math.nan  # its smoothing (chosen by cross-validation; NaN: no spline)
 
     @property
     def degree(self) -> int:
@@ -194,30 +217,51 @@ class TableFit:
     points: tuple[DepthPoint, ...]
     fit: ModelFit | None  # None with fewer than MIN_MODEL_DEPTHS depths
     lens: Lens
+    # the points the model was fitted to: the settled brackets' ends (two a depth), or the
+    # depth points themselves (empty: ``points``)
+    fit_points: tuple[DepthPoint, ...] = ()
+
+    @property
+    def model_points(self) -> tuple[DepthPoint, ...]:
+        """The points the focus model went through (``fit``'s per-point figures are theirs)."""
+        return self.fit_points or self.points
 
     def residual_lines(self) -> list[str]:
-        """One line per depth: the sharpest counts, v and the model's residual (for the CLI)."""
+        """One line per depth: where the closed loop reads its sweep (counts, v), how, and the
+        model's residual at the points it was fitted to there (for the CLI)."""
         lines = []
-        for i, p in enumerate(self.points):
-            line = f"z = {p.z_m:6.2f} m  sharpest counts {p.at:9.1f}"
+        fitted = self.model_points
+        for p in self.points:
+            line = f"z = {p.z_m:6.2f} m  read at counts {p.at:9.1f}"
             if not math.isnan(p.sigma_counts):
                 line += f" ± {p.sigma_counts:5.1f}"
-            line += f"  v = {p.v_mm:.6f} mm"
+            line += f"  v = {p.v_mm:.6f} mm ({p.rule})"
             if self.fit is not None:
-                line += (
-                    f"  model residual {self.fit.residual_v_um[i]:+6.3f} µm of v, "
-                    f"{self.fit.residual_depth_mm[i]:+7.1f} mm of depth"
-                )
-                if not self.fit.used[i]:
-                    line += "  REJECTED (outlier: re-measure this depth)"
+                mine = [i for i, q in enumerate(fitted) if q.placed_m == p.placed_m]
+                if not mine:
+                    line += "  not fitted (the bracket meets the end of the focus range)"
+                for i in mine:
+                    q = fitted[i]
+                    where = (
+                        ""
+                        if q is p or q.rule != "bracket end"
+                        else (f" at v {q.v_mm - p.v_mm:+.4f} mm")
+                    )
+                    line += f"; residual{where} {self.fit.residual_v_um[i]:+6.3f} µm of v" + (
+                        "" if self.fit.used[i] else " REJECTED (outlier: re-measure)"
+                    )
             lines.append(line)
         if self.fit is not None:
             m = self.fit
+            spline = (
+                ""
+                if m.model.spline is None
+                else (f" + smoothing spline (λ = {m.model.spline_lam:.0e})")
+            )
             lines.append(
-                f"focus model: P(counts) polynomial of degree {m.model.degree}"
-                f"{' + smoothing spline' if m.model.spline is not None else ''} (leave-one-out), "
-                f"{sum(m.used)} of {len(m.used)} depths; residual rms "
-                f"{m.rms_v_um:.3f} µm of v, {m.rms_depth_mm:.1f} mm of depth; leave-one-out "
+                f"focus model: P(counts) polynomial of degree {m.model.degree}{spline} "
+                f"(cross-validated), {sum(m.used)} of {len(m.used)} points; residual rms "
+                f"{m.rms_v_um:.3f} µm of v, {m.rms_depth_mm:.1f} mm of depth; leave-one-depth-out "
                 f"prediction rms {m.loo_rms_v_um:.3f} µm of v"
             )
         return lines
@@ -283,11 +327,22 @@ def fit_focus_model(
     sigma_counts: FloatArray,
     focal_length_mm: float,
     counts_span: tuple[float, float],
+    *,
+    groups: npt.ArrayLike | None = None,
+    structure: tuple[int, float] | None = None,
 ) -> ModelFit:
-    """P(counts) through the depths' sharpest counts; degree by leave-one-out, outliers dropped.
+    """P(counts) through the depths' points; structure by cross-validation, outliers dropped.
 
-    ``counts_span`` normalises the counts (the focus range: far end, near end).
+    ``counts_span`` normalises the counts (the focus range: far end, near end); ``groups``: the
+    depth each point's sweep was taken at (cross-validation leaves a depth out; NaN: a point
+    always kept; None: each point its own depth); ``structure``: (degree, spline smoothing)
+    imposed instead of chosen.
     """
+    labels = (
+        np.arange(len(z_m), dtype=np.float64)
+        if groups is None
+        else np.asarray(groups, dtype=np.float64)
+    )
     power = 1.0 / np.asarray(z_m, dtype=np.float64)
     lo, hi = counts_span
     u = (np.asarray(counts, dtype=np.float64) - lo) / (hi - lo)
@@ -295,7 +350,10 @@ def fit_focus_model(
     used = np.ones(len(u), dtype=bool)
     max_drop = int(MAX_OUTLIER_FRACTION * len(u))
     while True:
-        model, loo = _fit_model(u[used], power[used], sigma_p[used], (lo, hi), focal_length_mm)
+        model, loo = _fit_model(
+            u[used], power[used], sigma_p[used], (lo, hi), focal_length_mm,
+            groups=labels[used], structure=structure,
+        )  # fmt: skip
         resid = (power - model.power_dpt(counts)) / sigma_p
         r_used = resid[used]
         scale = max(MAD_TO_SIGMA * float(np.median(np.abs(r_used - np.median(r_used)))), 1.0)
@@ -336,35 +394,62 @@ def fit_table(
         return TableFit(tuple(points), None, _with_f_number(lens, f_number, rig.zoom_counts))
     _check_monotone(points)
     span = (float(rig.focus_range[0]), float(rig.focus_range[1]))
+    fit_points = points
     # The model is anchored at P = 0 at the far end of the focus range (focus at infinity, the
     # VISCA camera's datasheet, docs/design.md §6): the estimator's brackets at 10 m reach far
     # past the last calibrated depth, and there an unanchored model's cam ripple is free
     # (aberrated optics, seed 1: a true 100 m read as 44 m; bench 771 -> 483 mm ss RMS on 60 s,
     # true table 481 mm; reference unchanged).
     model = _fit_anchored(points, f, span)
-    # Second pass: each vertex refitted in v through the model (the estimator fits its bursts
-    # in v; a parabola in counts leans where the cam curves), then the model refitted. The axis
-    # is the model's polynomial without its residual spline: a spline that follows the first
-    # pass's scattered vertices warps each sweep's axis and feeds the scatter back (reference
-    # optics seed 2: refitted vertices ±1.9 µm off the same sweeps fitted on the true axis, table
-    # 26 mm rms; through the polynomial ±0.2 µm, 5 mm).
+    # Refit passes: each sweep read where the estimator's closed loop settles on it, through
+    # the latest model as the v axis (the estimator plans and fits its bursts in the table's v).
+    # A sweep read there gives the two ends of its settled bracket, counts a and b of equal
+    # cost: the table must map them to v − h and v + h of the depth (then the closed loop, on
+    # this table, settles at v and reads the depth). The bracket ends of the nearer depths
+    # reach to ~f + 10 µm (a 10 m target), where no target can be calibrated: the table near
+    # infinity is measured where the estimator uses it (docs/estimation.md §16). Depths whose
+    # bracket meets the end of the focus range (beyond ~11 m) give no pair and are not fitted.
     n_f = f_number if f_number is not None else PlanConfig().default_f_number
     per_px = pitch * n_f * 2.0 / f  # mm of v per px of blur radius, per mm of v (plan_burst)
     refit = points
-    for _ in range(REFIT_PASSES):
+    structure: tuple[int, float] | None = None
+    for k in range(REFIT_PASSES):
         mapping = dataclasses.replace(model.model, spline=None)
-        refit = [
-            combine_sweeps([_refit_in_v(p, mapping, window_blur_px * per_px * p.v_mm) for p in g])
-            for g in groups
-        ]
-        model = _fit_anchored(refit, f, span)
-    grid, v = _tabulate(model.model, (min(p.at for p in refit), max(p.at for p in refit)), span)
+        ends: list[DepthPoint] = []
+        centres: list[DepthPoint] = []
+        for g in groups:
+            h_of = [window_blur_px * per_px * p.v_mm for p in g]
+            reads = [_closed_loop_read(p, mapping, h, span) for p, h in zip(g, h_of, strict=True)]
+            pairs = [r for r in reads if len(r) == 3]
+            if pairs:
+                ends += [
+                    combine_sweeps([r[0] for r in pairs]),
+                    combine_sweeps([r[1] for r in pairs]),
+                ]
+                centres.append(combine_sweeps([r[2] for r in pairs]))
+            else:
+                centres.append(combine_sweeps([r[-1] for r in reads]))
+        if len({p.placed_m for p in ends}) < MIN_MODEL_DEPTHS:
+            break
+        settled = len(ends) == len(fit_points) and all(
+            abs(a.at - b.at) < SETTLED_SIGMA * a.sigma_counts
+            for a, b in zip(ends, fit_points, strict=True)
+        )
+        refit, fit_points = centres, ends
+        # the model's structure (degree, smoothing) is chosen on the first and the last pass
+        last = settled or k == REFIT_PASSES - 1
+        model = _fit_anchored(ends, f, span, None if last else structure)
+        structure = (model.model.degree, model.model.spline_lam)
+        if settled:
+            break
+    ats = [p.at for p in (*refit, *fit_points)]
+    grid, v = _tabulate(model.model, (min(ats), max(ats)), span)
     lens = Lens(
         name, f, pitch, tuple(int(c) for c in grid), tuple(float(x) for x in v),
         f_number=f_number, zoom_counts=rig.zoom_counts,
         table_sigma_v_mm=model.table_sigma_v_um / 1000.0,
     )  # fmt: skip
-    return TableFit(tuple(refit), model, lens)
+    return TableFit(tuple(refit), model, lens, tuple(fit_points))
 
 
 def lens_from_points(
@@ -416,14 +501,12 @@ def model_with_structure(
 ) -> FocusModel:
     """The anchored focus model of ``like``'s structure (degree, spline or not) through
     ``points``, without choosing it again: for resampling the table's uncertainty."""
-    counts, z, sigma_counts = _anchored_inputs(points, span)
+    counts, z, sigma_counts, _ = _anchored_inputs(points, span)
     lo, hi = span
     u = (counts - lo) / (hi - lo)
     power = 1.0 / z
     sigma_p = _power_sigma(u, power, sigma_counts, hi - lo)
-    return _build_model(
-        u, power, sigma_p, span, f, degree=like.degree, spline=like.spline is not None
-    )
+    return _build_model(u, power, sigma_p, span, f, degree=like.degree, lam=like.spline_lam)
 
 
 # -- private helpers --------------------------------------------------------------------------
@@ -435,11 +518,12 @@ def _build_model(
     f: float,
     *,
     degree: int,
-    spline: bool,
+    lam: float,
 ) -> FocusModel:
-    """The weighted polynomial of ``degree`` through (u, p), plus a residual spline if asked."""
+    """The weighted polynomial of ``degree`` through (u, p), plus a residual smoothing spline of
+    smoothing ``lam`` (NaN: none)."""
     base = FocusModel(tuple(float(c) for c in _polyfit(u, p, s, degree)), *span, f)
-    return _with_spline(base, u, p, s) if spline else base
+    return base if math.isnan(lam) else _with_spline(base, u, p, s, lam)
 
 
 def _power_sigma(
@@ -451,40 +535,77 @@ def _power_sigma(
 
 
 def _fit_model(
-    u: FloatArray, p: FloatArray, s: FloatArray, span: tuple[float, float], f: float
+    u: FloatArray,
+    p: FloatArray,
+    s: FloatArray,
+    span: tuple[float, float],
+    f: float,
+    *,
+    groups: FloatArray,
+    structure: tuple[int, float] | None = None,
 ) -> tuple[FocusModel, float]:
-    """Polynomial (degree by leave-one-out, at most MAX_BASE_DEGREE), with a residual spline
-    where that predicts the left-out depths better; and its leave-one-out error (dioptres)."""
-    degree, _ = _choose_degree(u, p, s, MAX_BASE_DEGREE)
+    """Polynomial (degree by cross-validation, at most MAX_BASE_DEGREE), with a residual
+    smoothing spline whose smoothing is chosen by cross-validation among SPLINE_LAMBDAS (or
+    none); and the cross-validated error (dioptres rms). Cross-validation leaves out one depth
+    at a time — every point of that depth's sweeps (``groups``: the depth; NaN: always kept,
+    the infinity anchor) — so that two points of one sweep cannot vouch for each other."""
+    if structure is None:
+        degree, _ = _choose_degree(u, p, s, MAX_BASE_DEGREE, groups)
+        lambdas: tuple[float, ...] = (math.nan, *SPLINE_LAMBDAS)
+    else:
+        degree, lambdas = structure[0], (structure[1],)
 
-    def build(mask: FloatArray, spline: bool) -> FocusModel:
-        return _build_model(u[mask], p[mask], s[mask], span, f, degree=degree, spline=spline)
+    def build(mask: BoolArray, lam: float) -> FocusModel:
+        return _build_model(u[mask], p[mask], s[mask], span, f, degree=degree, lam=lam)
 
-    best: tuple[float, bool] = (math.inf, False)
-    everything = np.ones(len(u), dtype=bool)
-    for spline in (False, True):
-        errs = []
-        for i in range(len(u)):
-            mask = np.arange(len(u)) != i
-            other = build(mask, spline)
-            errs.append(float(other.power_dpt(u[i] * (span[1] - span[0]) + span[0])) - p[i])
-        rms = math.sqrt(float(np.mean(np.square(errs))))
+    n_depths = len(np.unique(groups[np.isfinite(groups)]))
+    best: tuple[float, float] = (math.inf, math.nan)
+    for lam in lambdas:
+        if not math.isnan(lam) and n_depths < SPLINE_MIN_POINTS:
+            break
+        rms = _cross_validated(u, p, groups, functools.partial(build, lam=lam), span)
         if rms < best[0]:
-            best = (rms, spline)
-    return build(everything, best[1]), best[0]
+            best = (rms, lam)
+    return build(np.ones(len(u), dtype=bool), best[1]), best[0]
 
 
-def _with_spline(model: FocusModel, u: FloatArray, p: FloatArray, s: FloatArray) -> FocusModel:
-    """``model`` plus a smoothing spline of its residuals, the smoothing chosen by generalised
-    cross-validation (the cam's ripples the polynomial misses; none when they are noise)."""
+def _cross_validated(
+    u: FloatArray,
+    p: FloatArray,
+    groups: FloatArray,
+    build: Callable[[BoolArray], FocusModel],
+    span: tuple[float, float],
+) -> float:
+    """RMS error (dioptres) of each depth's points predicted by the model built without them."""
+    errs: list[float] = []
+    for g in np.unique(groups[np.isfinite(groups)]):
+        out = groups == g
+        try:
+            other = build(~out)
+        except ValueError:  # too few points left for the structure
+            return math.inf
+        pred = other.power_dpt(u[out] * (span[1] - span[0]) + span[0])
+        errs.extend(float(x) for x in pred - p[out])
+    return math.sqrt(float(np.mean(np.square(errs)))) if errs else math.inf
+
+
+def _with_spline(
+    model: FocusModel, u: FloatArray, p: FloatArray, s: FloatArray, lam: float
+) -> FocusModel:
+    """``model`` plus a smoothing spline of its residuals with smoothing ``lam`` (weights
+    normalised to a mean of one, u in [0, 1]): the cam's ripples the polynomial misses."""
     if len(u) < SPLINE_MIN_POINTS:
         return model
     order = np.argsort(u)
     r = p - model.power_dpt(u * (model.counts_hi - model.counts_lo) + model.counts_lo)
-    spline = make_smoothing_spline(u[order], r[order], w=1.0 / s[order] ** 2)
+    w = 1.0 / s[order] ** 2
+    uo = u[order]
+    if np.any(np.diff(uo) <= 0):
+        raise ValueError("a spline needs distinct settings")
+    spline = make_smoothing_spline(uo, r[order], w=w / float(np.mean(w)), lam=lam)
     return FocusModel(
         model.coef, model.counts_lo, model.counts_hi, model.focal_length_mm, spline,
-        (float(u.min()), float(u.max())),
+        (float(u.min()), float(u.max())), lam,
     )  # fmt: skip
 
 
@@ -556,21 +677,24 @@ def _polyfit(u: FloatArray, p: FloatArray, s: FloatArray, degree: int) -> FloatA
 
 
 def _choose_degree(
-    u: FloatArray, p: FloatArray, s: FloatArray, max_degree: int
+    u: FloatArray, p: FloatArray, s: FloatArray, max_degree: int, groups: FloatArray
 ) -> tuple[int, float]:
-    """The degree with the smallest leave-one-out prediction error (dioptres RMS), and it."""
-    n = len(u)
+    """The degree with the smallest cross-validated error (dioptres RMS, one depth left out at
+    a time), and it."""
+    n = len(np.unique(groups[np.isfinite(groups)])) + int((~np.isfinite(groups)).sum())
     top = min(max_degree, n - 2 - MIN_POINTS_PER_COEF)
     if top < 1:
         return max(1, min(n - 1, 1)), math.nan
     best = (1, math.inf)
+    span = (0.0, 1.0)
     for degree in range(1, top + 1):
-        errs = []
-        for i in range(n):
-            mask = np.arange(n) != i
-            coef = _polyfit(u[mask], p[mask], s[mask], degree)
-            errs.append(float(np.polynomial.polynomial.polyval(u[i], coef)) - p[i])
-        rms = math.sqrt(float(np.mean(np.square(errs))))
+
+        def build(mask: BoolArray, degree: int = degree) -> FocusModel:
+            return FocusModel(
+                tuple(float(c) for c in _polyfit(u[mask], p[mask], s[mask], degree)), *span, 1.0
+            )
+
+        rms = _cross_validated(u, p, groups, build, span)
         if rms < best[1]:
             best = (degree, rms)
     return best
@@ -589,24 +713,35 @@ def _check_monotone(points: list[DepthPoint]) -> None:
         )
 
 
-def _fit_anchored(points: list[DepthPoint], f: float, span: tuple[float, float]) -> ModelFit:
+def _fit_anchored(
+    points: list[DepthPoint],
+    f: float,
+    span: tuple[float, float],
+    structure: tuple[int, float] | None = None,
+) -> ModelFit:
     """The focus model through the points and the infinity anchor (the far end of the focus
     range focuses at infinity: the camera's datasheet); the fit's per-depth figures are the
     points' (the anchor's dropped)."""
-    counts, z, sigma = _anchored_inputs(points, span)
-    fit = fit_focus_model(counts, z, sigma, f, span)
+    counts, z, sigma, groups = _anchored_inputs(points, span)
+    fit = fit_focus_model(counts, z, sigma, f, span, groups=groups, structure=structure)
+    # in depth: the error a target at the sweep's own depth would see (a bracket end stands
+    # for a v, not for a depth a target was at)
+    placed = np.array([p.placed_m for p in points]) * MM_PER_M
+    dz_dv = (placed / (placed - f)) ** 2  # |dz/dv| of the thin lens at the placed depth
+    depth_mm = np.asarray(fit.residual_v_um[:-1]) * 1e-3 * dz_dv
     return dataclasses.replace(
         fit,
         used=fit.used[:-1],
         residual_v_um=fit.residual_v_um[:-1],
-        residual_depth_mm=fit.residual_depth_mm[:-1],
+        residual_depth_mm=tuple(float(x) for x in depth_mm),
     )
 
 
 def _anchored_inputs(
     points: list[DepthPoint], span: tuple[float, float]
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Counts, depth and σ (counts) of the points and of the infinity anchor (last)."""
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Counts, depth, σ (counts) and the placed depth (NaN: the anchor) of the points and of
+    the infinity anchor (last)."""
     counts = np.array([*(p.at for p in points), span[0]])
     sigma = np.array([p.sigma_counts for p in points])
     # a point without a σ (a rig that gave none) weighs as the median of the others
@@ -614,7 +749,8 @@ def _anchored_inputs(
     sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, fallback)
     sigma = np.r_[sigma, float(np.median(sigma))]
     z = np.array([*(p.z_m for p in points), math.inf])
-    return counts, z, sigma
+    groups = np.array([*(p.placed_m for p in points), math.nan])
+    return counts, z, sigma, groups
 
 
 def _by_depth(points: list[DepthPoint]) -> list[list[DepthPoint]]:
@@ -625,22 +761,50 @@ def _by_depth(points: list[DepthPoint]) -> list[list[DepthPoint]]:
     return [groups[z] for z in sorted(groups)]
 
 
-def _refit_in_v(point: DepthPoint, model: Any, half_width_mm: float) -> DepthPoint:
-    """``point``'s vertex refitted with the sweep's settings mapped to v through ``model``, on
-    a window of ``half_width_mm`` either side (the estimator's burst bracket)."""
+def _closed_loop_read(
+    point: DepthPoint, model: Any, half_width_mm: float, span: tuple[float, float]
+) -> tuple[DepthPoint, ...]:
+    """``point``'s sweep read through ``model`` as the v axis: where the estimator's closed
+    loop settles with a bracket of ± ``half_width_mm`` (:func:`closed_loop_vertex`) — the
+    bracket's two ends (points at v ∓ h of the depth) and its centre (the depth); or, where the
+    bracket meets the end of the focus range ``span`` or the sweep does not reach it, only the
+    depth point, read at the pinned bracket or at the least-squares vertex of the window."""
     if len(point.sweep) < 3:
-        return point
+        return (point,)
     c, g, s = (np.array(col) for col in zip(*point.sweep, strict=True))
     v = model.v_mm(c)
     order = np.argsort(v)
     found = fit_vertex(v[order], g[order], s[order], half_width_mm)
     if found is None:
-        return point
+        return (point,)
     lo, hi = float(c.min()), float(c.max())
-    at = model.counts_for_v(found.x, lo, hi)
-    slope = abs(float(np.gradient(v, c)[int(np.argmin(np.abs(c - at)))]))
-    sigma = found.sigma / slope if slope > 0 else point.sigma_counts
-    return dataclasses.replace(point, counts=round(at), counts_exact=at, sigma_counts=sigma)
+
+    def at_v(x: float, sigma_v: float, rule: str, offset_mm: float = 0.0) -> DepthPoint:
+        """The point at ``x`` (the model's v) standing for the depth's v + ``offset_mm``."""
+        at = model.counts_for_v(x, lo, hi)
+        slope = abs(float(np.gradient(v, c)[int(np.argmin(np.abs(c - at)))]))
+        sigma = sigma_v / slope if slope > 0 else point.sigma_counts
+        v_mm = point.v_mm + offset_mm
+        f = model.focal_length_mm
+        # the depth in focus at v_mm (negative beyond infinity: P = 1/z < 0)
+        z_m = point.z_m if offset_mm == 0 else f * v_mm / (v_mm - f) / MM_PER_M
+        return dataclasses.replace(
+            point, z_m=z_m, v_mm=v_mm, counts=round(at), counts_exact=at, sigma_counts=sigma,
+            rule=rule, target_m=point.placed_m,
+        )  # fmt: skip
+
+    ends = (float(model.v_mm(span[0])), float(model.v_mm(span[1])))
+    loop = closed_loop_vertex(v, g, s, half_width_mm, start=found.x, ends=ends)
+    if loop is None:
+        return (at_v(found.x, found.sigma, "least squares"),)
+    if loop.pinned:
+        return (at_v(loop.x, loop.sigma, "closed loop, pinned"),)
+    h = half_width_mm
+    return (
+        at_v(loop.x - h, loop.sigma, "bracket end", -h),
+        at_v(loop.x + h, loop.sigma, "bracket end", h),
+        at_v(loop.x, loop.sigma, "closed loop"),
+    )
 
 
 def _tabulate(

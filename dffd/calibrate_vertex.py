@@ -142,10 +142,16 @@ def _smoother_weights(x: FloatArray, s: FloatArray, at: float, k: int) -> FloatA
     nearest ``at``."""
     idx = np.argsort(np.abs(x - at), kind="stable")[: 2 * k + 1]
     t = x[idx] - at
+    scale = max(float(np.abs(t).max()), 1e-300)  # conditioning: t in [-1, 1]
+    t = t / scale
     design = np.stack([np.ones_like(t), t, t * t], axis=1) / s[idx, None]
-    pinv = np.linalg.pinv(design)
+    # the first row of the pseudo-inverse: (AᵀA)⁻¹ e₀ mapped through Aᵀ
+    try:
+        y = np.linalg.solve(design.T @ design, np.array([1.0, 0.0, 0.0]))
+    except np.linalg.LinAlgError:
+        y = np.linalg.pinv(design.T @ design) @ np.array([1.0, 0.0, 0.0])
     w = np.zeros(len(x))
-    w[idx] = pinv[0] / s[idx]
+    w[idx] = (design @ y) / s[idx]
     return w
 
 

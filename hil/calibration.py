@@ -42,7 +42,7 @@ from hil.simbuild import sim_camera_config, truth_lens_table
 logger = logging.getLogger(__name__)
 
 # Bump when the procedure changes what it writes: cached tables of another version are refitted.
-PROCEDURE_VERSION = 7  # 7: the table carries its standard error
+PROCEDURE_VERSION = 8  # 8: the closed loop's bracket ends (docs/estimation.md §16)
 # Depths (m) at which the calibrated table is scored against the true focus curve.
 SCORE_DEPTHS_M = tuple(float(z) for z in np.geomspace(1.5, 12.0, 25))
 
@@ -97,7 +97,12 @@ def calibrated_lens(
             "residual_v_rms_um": fit.rms_v_um,
             "residual_depth_rms_mm": fit.rms_depth_mm,
             "loo_v_rms_um": fit.loo_rms_v_um,
-            "rejected_depths_m": [z for z, ok in zip(depths, fit.used, strict=True) if not ok],
+            "rejected_depths_m": sorted(
+                {p.placed_m for p, ok in zip(table.model_points, fit.used, strict=True) if not ok}
+            ),
+            "spline_lambda": None if math.isnan(fit.model.spline_lam) else fit.model.spline_lam,
+            # how each depth's sweep was read (closed loop, pinned at the focus range's end, …)
+            "vertex_rules": {f"{p.z_m:g}": p.rule for p in table.points},
         },
         "check": None if check is None else _check_report(check),
         "repeated_depths_m": list(result.repeated),
@@ -169,15 +174,16 @@ def _check_report(check: TableCheck) -> dict[str, Any]:
     return {
         "repeat_sigma": REPEAT_SIGMA,
         "misfit_scale": check.misfit_scale,
-        "loo_z_rms": float(np.sqrt(np.mean([d.z_score**2 for d in check.depths]))),
+        "loo_z_rms": float(np.sqrt(np.nanmean([d.z_score**2 for d in check.depths]))),
         "sigma_depth_mm_max": max(d.sigma_depth_mm for d in check.depths),
         "per_depth": [
             {
                 "z_m": d.z_m,
                 "sigma_v_um": d.sigma_v_um,
                 "sigma_depth_mm": d.sigma_depth_mm,
-                "loo_v_um": d.loo_v_um,
-                "z_score": d.z_score,
+                # None: a depth not in the fit (its bracket meets the end of the focus range)
+                "loo_v_um": d.loo_v_um if math.isfinite(d.loo_v_um) else None,
+                "z_score": d.z_score if math.isfinite(d.z_score) else None,
                 "sweeps": d.n_sweeps,
             }
             for d in check.depths
