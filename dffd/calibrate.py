@@ -20,14 +20,16 @@ entirely after the focus move completed (latency + 2 frames after the VISCA Comp
 focus cost is taken exactly as the estimator takes it — active contour normals and the
 configured ``[estimators] focus_measure`` (:func:`dffd.core.focus.frame_cost`) — so whatever bias
 the measure has on this lens is absorbed by the table, as the estimator's bursts will see it.
-The sharpest setting is the vertex of a parabola fitted on the window, symmetric about the
-vertex, where the cost is parabolic (:func:`dffd.calibrate_fit.fit_vertex`). The thin lens gives
-each depth its focus power ``P = 1/z``; a smooth model ``P(counts)`` (a polynomial whose degree is
-chosen by leave-one-out, outliers dropped: :func:`dffd.calibrate_fit.fit_focus_model`) is fitted
-to the depths; the vertices are then refitted in ``v`` through that model (as the estimator fits
-its bursts) and the model refitted (:func:`dffd.calibrate_fit.fit_table`). The file written
-tabulates ``v = 1/(1/f − P)`` of the model densely over the calibrated range (PCHIP-interpolated
-by :class:`dffd.core.lens.Lens`); the model's residual at each depth is printed.
+The first vertex of a sweep is a parabola fitted on a window, symmetric about the vertex, where
+the cost is parabolic (:func:`dffd.calibrate_fit.fit_vertex`). The thin lens gives each depth
+its focus power ``P = 1/z``; a smooth model ``P(counts)`` (a polynomial and a residual spline,
+their structure chosen by cross-validation, outliers dropped:
+:func:`dffd.calibrate_fit.fit_focus_model`) is fitted to the depths; then each sweep is read
+where the estimator's closed loop settles on it (the burst bracket whose ends cost the same,
+:mod:`dffd.calibrate_vertex`) and the model refitted through the ends of those brackets
+(:func:`dffd.calibrate_fit.fit_table`), until they stop moving. The file written tabulates
+``v = 1/(1/f − P)`` of the model densely over the focus range (PCHIP-interpolated by
+:class:`dffd.core.lens.Lens`); where each depth was read and the model's residuals are printed.
 :func:`calibrate_table` runs the procedure, fits the table and checks it
 (:func:`dffd.calibrate_check.check_table`: the table's σ per depth, the depths to sweep again),
 repeating the sweeps the check asks for.

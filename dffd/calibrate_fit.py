@@ -16,16 +16,22 @@ second pass, as the estimator's own burst fit does.
 
 Focus model (:func:`fit_focus_model`). The thin lens turns each depth z into a focus power
 ``P = 1/z`` (dioptres); the lens's focus cam makes ``P`` a smooth monotone function of counts.
-``P(u)`` is a polynomial in the normalised counts ``u``; its degree is chosen by leave-one-out
-cross-validation (the degree that best predicts each depth from the others), outliers beyond
-:data:`OUTLIER_SIGMA` robust σ are dropped, and the residuals are reported in v (µm) and in
-depth (mm). ``v(counts) = 1 / (1/f − P/1000)`` is then tabulated densely for the lens file.
+``P(u)`` is a polynomial in the normalised counts ``u`` plus, where it predicts better, a
+smoothing spline of its residuals (a cam ripple); the degree and the spline's smoothing are
+chosen by cross-validation that leaves out one depth at a time (all the points of its sweeps),
+outliers beyond :data:`OUTLIER_SIGMA` robust σ are dropped, and the residuals are reported in v
+(µm) and in depth (mm). ``v(counts) = 1 / (1/f − P)`` is then tabulated densely for the lens file.
 
-Lens table (:func:`fit_table`). The depth points of the sweeps (:class:`DepthPoint`) and the
-infinity anchor at the far end of the focus range give the model; each vertex is refitted in
-``v`` through it (on the estimator's burst bracket) and the model refitted; the table is the
-model every :data:`TABLE_STEP_COUNTS` over the focus range where it stays monotone. With fewer
-than :data:`MIN_MODEL_DEPTHS` depths the table is the points themselves (:func:`lens_from_points`).
+Lens table (:func:`fit_table`). A first model goes through the sweeps' least-squares vertices
+(in counts) and the infinity anchor at the far end of the focus range. Then, pass after pass,
+each sweep is read through the latest model's polynomial as the v axis where the estimator's
+closed loop settles on it (:func:`dffd.calibrate_vertex.closed_loop_vertex`: the burst bracket
+whose two ends cost the same), and the model is refitted through the two ends of each settled
+bracket, at v − h and v + h of the depth: on that table the loop settles at v and reads the
+calibrated depth whatever the lens's point-spread function (docs/estimation.md §16). The table
+is the model every :data:`TABLE_STEP_COUNTS` over the focus range where it stays monotone. With
+fewer than :data:`MIN_MODEL_DEPTHS` depths the table is the points themselves
+(:func:`lens_from_points`).
 """
 
 from __future__ import annotations
