@@ -85,6 +85,10 @@ VERTEX_WINDOW_BLUR_PX = PlanConfig().outer_blur_px
 # reading's scatter back into the axis (reference optics seed 1: table 2.3 -> 11.1 mm rms).
 REFIT_PASSES = 8
 SETTLED_SIGMA = 0.05  # the passes stop when no bracket end moves by more than this × its σ
+# The fit missing its own bracket ends by more than this many of their σ (rms) means the axis
+# misses the focus curve: the passes go on through the whole model (polynomial and spline). The
+# same limit as a depth the others predict badly (calibrate_check.REPEAT_SIGMA).
+AXIS_MISFIT_SIGMA = 3.0
 MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselves
 # Repeated sweeps of one depth (combine_sweeps): with three or more, a sweep whose vertex is more
 # than this many of its σ from the others' median is dropped (a disturbed sweep: the target
@@ -417,37 +421,16 @@ def fit_table(
     # bracket meets the end of the focus range (beyond ~11 m) give no pair and are not fitted.
     n_f = f_number if f_number is not None else PlanConfig().default_f_number
     per_px = pitch * n_f * 2.0 / f  # mm of v per px of blur radius, per mm of v (plan_burst)
-    refit = points
-    structure: tuple[int, float] | None = None
-    for k in range(REFIT_PASSES):
-        mapping = dataclasses.replace(model.model, spline=None)
-        ends: list[DepthPoint] = []
-        centres: list[DepthPoint] = []
-        for g in groups:
-            h_of = [window_blur_px * per_px * p.v_mm for p in g]
-            reads = [_closed_loop_read(p, mapping, h, span) for p, h in zip(g, h_of, strict=True)]
-            pairs = [r for r in reads if len(r) == 3]
-            if pairs:
-                ends += [
-                    combine_sweeps([r[0] for r in pairs]),
-                    combine_sweeps([r[1] for r in pairs]),
-                ]
-                centres.append(combine_sweeps([r[2] for r in pairs]))
-            else:
-                centres.append(combine_sweeps([r[-1] for r in reads]))
-        if len({p.placed_m for p in ends}) < MIN_MODEL_DEPTHS:
-            break
-        settled = len(ends) == len(fit_points) and all(
-            abs(a.at - b.at) < SETTLED_SIGMA * a.sigma_counts
-            for a, b in zip(ends, fit_points, strict=True)
+    model, refit, fit_points = _settle(groups, model, points, span, per_px * window_blur_px)
+    # A focus curve the polynomial cannot follow (a cam ripple) leaves the bracket ends of
+    # neighbouring depths inconsistent through the polynomial axis: the fit then misses its own
+    # points by many of their σ. Only then the passes go on with the whole model (polynomial and
+    # spline) as the axis; through the spline a model that needs none feeds the readings'
+    # scatter back (reference optics: misfit 0.4-0.8 σ rms, polynomial axis kept).
+    if _misfit_sigma(model, fit_points) > AXIS_MISFIT_SIGMA:
+        model, refit, fit_points = _settle(
+            groups, model, points, span, per_px * window_blur_px, spline_axis=True
         )
-        refit, fit_points = centres, ends
-        # the model's structure (degree, smoothing) is chosen on the first and the last pass
-        last = settled or k == REFIT_PASSES - 1
-        model = _fit_anchored(ends, f, span, None if last else structure)
-        structure = (model.model.degree, model.model.spline_lam)
-        if settled:
-            break
     ats = [p.at for p in (*refit, *fit_points)]
     grid, v = _tabulate(model.model, (min(ats), max(ats)), span)
     lens = Lens(
@@ -811,6 +794,64 @@ def _closed_loop_read(
         at_v(loop.x + h, loop.sigma, "bracket end", h),
         at_v(loop.x, loop.sigma, "closed loop"),
     )
+
+
+def _settle(
+    groups: list[list[DepthPoint]],
+    model: ModelFit,
+    points: list[DepthPoint],
+    span: tuple[float, float],
+    h_per_v: float,
+    *,
+    spline_axis: bool = False,
+) -> tuple[ModelFit, list[DepthPoint], list[DepthPoint]]:
+    """Refit passes until the bracket ends stop moving: each sweep read through the model (its
+    polynomial, or the whole model with ``spline_axis``), the model refitted through the ends;
+    the model, the depth points (where each depth is read) and the points it was fitted to."""
+    f = model.model.focal_length_mm
+    refit, fit_points = points, points
+    structure: tuple[int, float] | None = None
+    for k in range(REFIT_PASSES):
+        mapping = model.model if spline_axis else dataclasses.replace(model.model, spline=None)
+        ends: list[DepthPoint] = []
+        centres: list[DepthPoint] = []
+        for g in groups:
+            reads = [_closed_loop_read(p, mapping, h_per_v * p.v_mm, span) for p in g]
+            pairs = [r for r in reads if len(r) == 3]
+            if pairs:
+                ends += [
+                    combine_sweeps([r[0] for r in pairs]),
+                    combine_sweeps([r[1] for r in pairs]),
+                ]
+                centres.append(combine_sweeps([r[2] for r in pairs]))
+            else:
+                centres.append(combine_sweeps([r[-1] for r in reads]))
+        if len({p.placed_m for p in ends}) < MIN_MODEL_DEPTHS:
+            break
+        settled = len(ends) == len(fit_points) and all(
+            abs(a.at - b.at) < SETTLED_SIGMA * a.sigma_counts
+            for a, b in zip(ends, fit_points, strict=True)
+        )
+        refit, fit_points = centres, ends
+        # the model's structure (degree, smoothing) is chosen on the first and the last pass
+        last = settled or k == REFIT_PASSES - 1
+        model = _fit_anchored(ends, f, span, None if last else structure)
+        structure = (model.model.degree, model.model.spline_lam)
+        if settled:
+            break
+    return model, refit, fit_points
+
+
+def _misfit_sigma(model: ModelFit, points: list[DepthPoint]) -> float:
+    """RMS of the model's residuals at ``points`` in units of their own σ (the points used)."""
+    if len(points) != len(model.residual_v_um):
+        return 0.0
+    at = np.array([p.at for p in points])
+    slope = np.abs(model.model.v_mm(at + 0.5) - model.model.v_mm(at - 0.5))  # mm per count
+    sigma_um = np.array([p.sigma_counts for p in points]) * slope * 1e3
+    r = np.asarray(model.residual_v_um) / sigma_um
+    used = np.asarray(model.used) & np.isfinite(r)
+    return float(np.sqrt(np.mean(r[used] ** 2))) if used.any() else 0.0
 
 
 def _tabulate(
