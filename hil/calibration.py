@@ -42,7 +42,7 @@ from hil.simbuild import sim_camera_config, truth_lens_table
 logger = logging.getLogger(__name__)
 
 # Bump when the procedure changes what it writes: cached tables of another version are refitted.
-PROCEDURE_VERSION = 8  # 8: the closed loop's bracket ends (docs/estimation.md §16)
+PROCEDURE_VERSION = 9  # 8: the closed loop's bracket ends; 9: the axis switch (estimation §16)
 # Depths (m) at which the calibrated table is scored against the true focus curve.
 SCORE_DEPTHS_M = tuple(float(z) for z in np.geomspace(1.5, 12.0, 25))
 
