@@ -10,12 +10,14 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from dffd.core import kernels, kernels_numpy
 from dffd.core.contour import (
     BoundaryObservation,
     ContourTracker,
     FloatArray,
     Motion,
     TrackerConfig,
+    _Fit,
     better_fit,
     find_target,
     outward_normals,
@@ -246,7 +248,36 @@ def _run_pair(motion: Motion) -> tuple[list[BoundaryObservation], list[BoundaryO
 
 
 class _ReferenceTracker(ContourTracker):
-    """The tracker with the NumPy pass the kernels replaced (operation for operation)."""
+    """The tracker with the NumPy passes the kernels replaced (operation for operation)."""
+
+    def _fit(
+        self,
+        grad: Any,
+        predicted: FloatArray,
+        box: Any,
+        motion: Motion,
+        relax: float,
+        max_passes: int,
+        refine_px: float,
+    ) -> Any:
+        del box  # the reference computes its windows pass by pass
+        obs, c_in, r_in, _ = self._step(grad, predicted, motion, relax)
+        failed = False
+        for _ in range(max_passes - 1):
+            if not obs.ok:
+                break
+            moved = math.hypot(obs.centroid[0] - c_in[0], obs.centroid[1] - c_in[1])
+            if moved + abs(obs.r_px - r_in) <= refine_px:
+                break
+            again, c_in, r_in, _ = self._step(grad, obs.points, motion, relax)
+            if not again.ok:
+                failed = True
+                break
+            obs = again
+        c = np.add.reduce(predicted, axis=0) / len(predicted)  # sequential sums, as the kernel
+        lo, hi = obs.points.min(axis=0), obs.points.max(axis=0)
+        box_out = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+        return _Fit(obs, failed, box_out, (float(c[0]), float(c[1])))
 
     def _step(
         self, grad: Any, pts: FloatArray, motion: Motion, relax: float
@@ -398,24 +429,28 @@ def _ref_irls(
     return params, w, res
 
 
-def test_polarity_samples_read_only_the_points_box_with_identical_values() -> None:
-    # _sample converts only the points' bounding box to float32; remap must then read the same
-    # pixels with the same weights as on the whole frame: equal to the bit, also off the image.
-    from dffd.core.contour import _sample
-
+def test_the_polarity_is_the_sign_of_opencvs_samples_inside_against_outside() -> None:
+    # the kernels sample as cv2.remap on the whole frame (replicated border): the same median
+    # sign, also for contours partly or wholly off the image
     rng = np.random.default_rng(3)
     img = rng.integers(0, 256, (120, 160), dtype=np.uint8)
-    for trial in range(400):
-        centre, r = rng.uniform(-30, 190, 2), rng.uniform(1, 80)
+    img = cv2.GaussianBlur(img, (0, 0), 4.0)  # smooth: medians away from 0
+    signs = set()
+    for trial in range(300):
+        centre, r = rng.uniform(-30, 190, 2), rng.uniform(4, 80)
         a = np.linspace(0, 2 * np.pi, 64, endpoint=False) + rng.uniform()
         pts = np.column_stack([centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)])
         pts += rng.normal(0, 0.3, pts.shape)
-        if trial % 100 == 0:
-            pts[5] = [np.nan, 3.0]
-        mx = pts[:, 0].astype(np.float32).reshape(1, -1)
-        my = pts[:, 1].astype(np.float32).reshape(1, -1)
+        normals = outward_normals(pts)
+        both = np.concatenate((pts - 3.0 * normals, pts + 3.0 * normals)).astype(np.float32)
         whole = cv2.remap(
-            img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        )
-        expected = np.asarray(whole, dtype=np.float64).ravel()
-        assert np.array_equal(_sample(img, pts), expected, equal_nan=True), trial
+            img.astype(np.float32), both[:, 0:1].T.copy(), both[:, 1:2].T.copy(),
+            cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
+        ).astype(np.float64).ravel()  # fmt: skip
+        diff = whole[:64] - whole[64:]
+        expected = 1.0 if float(np.median(diff)) >= 0 else -1.0
+        signs.add(expected)
+        for impl in (kernels, kernels_numpy):
+            got = impl.polarity(img, np.ascontiguousarray(pts), normals, 3.0)
+            assert got == expected, (trial, impl.__name__)
+    assert signs == {1.0, -1.0}

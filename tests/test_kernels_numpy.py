@@ -20,7 +20,7 @@ from dffd.core.contour import (
     TrackerConfig,
     find_target,
 )
-from dffd.core.kernel_layout import S_TMP, S_TMP2, S_WNEW
+from dffd.core.kernel_layout import OUT_STATUS, S_TMP, S_TMP2, S_WNEW, ST_KEPT, ST_NEED_WINDOW
 from dffd.core.synthetic import render_disc
 
 W, H = 640, 480
@@ -32,6 +32,8 @@ RTOL = 1e-9
 SWAP_TIMEOUT_S = 120.0
 # scratch rows the kernels use as private temporaries (the twins do not write them)
 PRIVATE_ROWS = (S_TMP, S_TMP2, S_WNEW)
+# positions of fit_passes' state and scratch arrays among its arguments
+FIT_STATE, FIT_SCRATCH, FIT_OUT = 14, 21, 23
 
 
 class _Recorder:
@@ -47,11 +49,14 @@ class _Recorder:
     def normals_and_box(self, *args: Any) -> Any:
         return self._call("normals_and_box", args)
 
-    def sample_maps(self, *args: Any) -> None:
-        self._call("sample_maps", args)
+    def fit_passes(self, *args: Any) -> None:
+        self._call("fit_passes", args)
 
-    def fit_pass(self, *args: Any) -> None:
-        self._call("fit_pass", args)
+    def resample(self, *args: Any) -> None:
+        self._call("resample", args)
+
+    def polarity(self, *args: Any) -> Any:
+        return self._call("polarity", args)
 
     def edge_moments(self, *args: Any) -> None:
         self._call("edge_moments", args)
@@ -63,22 +68,26 @@ def test_every_kernel_call_of_a_tracked_sequence_gives_the_same_outputs() -> Non
         for motion in ("similarity", "affine", "translation"):
             _track(motion)
     names = {name for name, _ in recorder.calls}
-    assert names == {"normals_and_box", "sample_maps", "fit_pass", "edge_moments"}
-    lost = 0
+    assert names == {"normals_and_box", "fit_passes", "edge_moments", "resample", "polarity"}
+    lost = resumed = 0
     for name, args in recorder.calls:
         fast, twin = _copy(args), _copy(args)
         got_fast = getattr(kernels, name)(*fast)
         got_twin = getattr(kernels_numpy, name)(*twin)
-        if name == "normals_and_box":
+        if name in {"normals_and_box", "polarity"}:
             np.testing.assert_allclose(got_twin, got_fast, rtol=RTOL)
-        if name == "fit_pass":  # the scratch array holds both kernels' temporaries
-            lost += int(fast[-1][0] != 0)
+        if name == "fit_passes":  # the scratch arrays hold both kernels' temporaries
+            state = fast[FIT_STATE]
+            kept = int(state[ST_KEPT])
+            lost += int(fast[FIT_OUT][kept][OUT_STATUS] != 0)
+            resumed += int(state[ST_NEED_WINDOW] != 0)
             for row in PRIVATE_ROWS:
-                fast[15][row] = twin[15][row] = 0.0
+                fast[FIT_SCRATCH][:, row] = twin[FIT_SCRATCH][:, row] = 0.0
         for a, b in zip(twin, fast, strict=True):
             if isinstance(a, np.ndarray):
                 np.testing.assert_allclose(a, b, rtol=RTOL, atol=1e-12, err_msg=name)
     assert 0 < lost < len(recorder.calls)  # both branches of the pass: found and lost
+    assert resumed > 0  # both return for a window the caller computes, then resume
 
 
 def test_the_tracker_follows_the_same_contour_with_either_implementation() -> None:
@@ -189,3 +198,26 @@ def _track(motion: Motion) -> list[tuple[BoundaryObservation, tuple[float, float
 
 def _copy(args: tuple[Any, ...]) -> tuple[Any, ...]:
     return tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
+
+
+def test_the_bilinear_samples_are_opencvs_remap() -> None:
+    """Both kernels sample the gradient window as cv2.remap(INTER_LINEAR) did before them:
+    inside, across and beyond the window's border."""
+    rng = np.random.default_rng(5)
+    g = (rng.standard_normal((2, 60, 70)) * 40).astype(np.float32)
+    n, s = 64, 12
+    pts = np.column_stack([rng.uniform(-8, 78, n), rng.uniform(-8, 68, n)])
+    angle = rng.uniform(0, 2 * np.pi, n)
+    normals = np.column_stack([np.cos(angle), np.sin(angle)])
+    x0, y0 = 3.0, 2.0  # the window's corner in the frame
+    steps = np.arange(-s, s + 1)[None, :]
+    mapx = (pts[:, 0:1] + steps * normals[:, 0:1] - x0).astype(np.float32)
+    mapy = (pts[:, 1:2] + steps * normals[:, 1:2] - y0).astype(np.float32)
+    expected = [cv2.remap(g[c], mapx, mapy, cv2.INTER_LINEAR) for c in (0, 1)]
+    for impl in (kernels, kernels_numpy):
+        bx = np.empty((n, 2 * s + 1), dtype=np.float32)
+        by = np.empty_like(bx)
+        impl.sample_normals(g[0], g[1], x0, y0, pts, normals, s, bx, by)
+        # float32 rounding: OpenCV's SIMD path fuses the multiply-adds where the CPU has FMA
+        np.testing.assert_allclose(bx, expected[0], rtol=1e-6, atol=1e-4)
+        np.testing.assert_allclose(by, expected[1], rtol=1e-6, atol=1e-4)

@@ -25,6 +25,7 @@ from dffd.core import kernel_layout as layout
 
 FloatArray = npt.NDArray[np.float64]
 Motion = Literal["translation", "similarity", "affine"]
+Box = tuple[float, float, float, float]  # xmin, ymin, xmax, ymax
 
 # Edge second moment (focus measure, dffd/core/focus.py): the window around each normal's edge is
 # EDGE_WINDOW_SIGMAS times the frame's pooled edge spread, at least EDGE_WINDOW_MIN_PX; the first
@@ -45,6 +46,15 @@ HYPOTHESIS_MISS = 0.33
 # Extra border of the per-frame gradient window: the passes after the first move the contour by a
 # pixel or two (measured on the reference simulator), so they reuse the first pass's gradient.
 GRADIENT_SLACK_PX = 4
+# A pass's gradient window holds its points' box ± (search_px + this): the normals' reach plus
+# the border the smoothing and the bilinear samples read.
+WINDOW_MARGIN_PX = 4
+# ContourTracker.start: affine passes on the acquisition frame, each adopting half the non-rigid
+# residual (the coarse acquisition polygon is not yet the boundary).
+START_PASSES = 6
+# The polarity of a new contour: the image this far inside against this far outside it.
+POLARITY_DEPTH_PX = 3.0
+START_RELAX = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,7 +80,7 @@ class TrackerConfig:
     # (n·t)²)/(2a), so r shrinks by ~|t|²/(4a) — 1.6 px (7 %) for a 12 px pan/tilt jump at 23 px
     # (measured on the reference simulator); after a second pass the residual t is sub-pixel.
     max_passes: int = 3
-    curvature_correction: bool = True  # add σ²/(2r) to r (see _step)
+    curvature_correction: bool = True  # add σ²/(2r) to r (kernels.fit_pass)
     refine_px: float = 0.3
 
 
@@ -137,12 +147,25 @@ class BoundaryObservation:
         return None if self.edge_samples is None else edge_moments(self.edge_samples, window_sigmas)
 
 
+class _Fit(NamedTuple):
+    """One fit (ContourTracker._fit): its observation, and what the next frame needs."""
+
+    obs: BoundaryObservation
+    failed: bool  # a pass after the first failed (the one before it was kept)
+    box: Box  # of obs.points when found (xmin, ymin, xmax, ymax), else NaN
+    c_in: tuple[float, float]  # centroid of the fit's input points
+
+
 class ContourTracker:
     """Tracks one closed boundary frame to frame; pure given its inputs (no I/O, no clock)."""
 
     def __init__(self, config: TrackerConfig) -> None:
         self.config = config
         self._points: FloatArray | None = None
+        # the box and centroid of _points, as the kernel computed them (sequential sums, the
+        # same values as NumPy's axis-0 reduction)
+        self._box: Box | None = None
+        self._c = (math.nan, math.nan)
         self._velocity = np.zeros(2)  # centroid px / s
         self._t: float | None = None
         self._polarity = 1.0  # +1: intensity drops outward (bright target)
@@ -180,6 +203,7 @@ class ContourTracker:
     def reset(self) -> None:
         """Drop the contour."""
         self._points = None
+        self._box = None
         self._velocity = np.zeros(2)
         self._t = None
         self._bad_frames = 0
@@ -187,22 +211,22 @@ class ContourTracker:
 
     def start(self, gray: npt.NDArray[np.uint8], points: FloatArray, t: float) -> bool:
         """Take ``points`` (any closed polygon) as the target boundary and refine it on ``gray``."""
-        pts = resample_closed(np.asarray(points, dtype=np.float64), self.config.n_normals)
+        pts = np.empty((self.config.n_normals, 2))
+        kernel_dispatch.current().resample(np.ascontiguousarray(points, dtype=np.float64), pts)
         self._points = pts
         self._velocity = np.zeros(2)
         self._t = t
         self._bad_frames = 0
         self._polarity = self._estimate_polarity(gray, pts)
-        obs: BoundaryObservation | None = None
         grad = _GradientCache(gray, self.config.presmooth_sigma_px)
-        for _ in range(6):
-            obs, _, _, _ = self._step(grad, self._points, "affine", relax=0.5)
-            if not obs.ok:
-                self.reset()
-                return False
-            self._points = obs.points
+        # every pass must find the target: no early stop (refine_px −∞), a failed one fails
+        fit = self._fit(grad, pts, None, "affine", START_RELAX, START_PASSES, -math.inf)
+        if not fit.obs.ok or fit.failed:
+            self.reset()
+            return False
+        self._points, self._box, self._c = fit.obs.points, fit.box, fit.obs.centroid
         self._start_gradient = (t, grad)
-        return obs is not None and obs.ok
+        return True
 
     def update(self, gray: npt.NDArray[np.uint8], t: float, motion: Motion) -> BoundaryObservation:
         """Predict to time ``t``, measure on ``gray`` and update; raises if not active.
@@ -214,35 +238,40 @@ class ContourTracker:
         velocity, and the constant-velocity prediction of the next frame then lands beyond the
         normals' reach while the last position still holds the target.
         """
-        if self._points is None or self._t is None:
+        if self._points is None or self._t is None or self._box is None:
             raise RuntimeError("ContourTracker.update called without an active contour")
         dt = max(t - self._t, 0.0)
         vx, vy = self._velocity.tolist()
         sx, sy = vx * dt, vy * dt  # the constant-velocity step (floats: NumPy's arithmetic)
         predicted = self._points + np.array([sx, sy])
+        # the predicted box, exactly: rounding is monotonic, so min(x + s) = min(x) + s
+        xmin, ymin, xmax, ymax = self._box
+        box_pred = (xmin + sx, ymin + sy, xmax + sx, ymax + sy)
         relax = self.config.relax if motion != "translation" else 0.0
         started, self._start_gradient = self._start_gradient, None
         if started is not None and started[0] == t and started[1].gray is gray:
             grad = started[1]  # the frame the contour was just started on
         else:
             grad = _GradientCache(gray, self.config.presmooth_sigma_px)
-        obs = self._fit(grad, predicted, motion, relax)
-        if math.hypot(sx, sy) > self.config.refine_px and self._in_doubt(obs, predicted):
-            still = self._fit(grad, self._points, motion, relax)
-            if better_fit(still, obs):
-                obs = still
+        passes, refine = self.config.max_passes, self.config.refine_px
+        fit = first = self._fit(grad, predicted, box_pred, motion, relax, passes, refine)
+        if math.hypot(sx, sy) > refine and self._in_doubt(first.obs, first.c_in):
+            still = self._fit(grad, self._points, self._box, motion, relax, passes, refine)
+            if better_fit(still.obs, first.obs):
+                fit = still
+        obs = fit.obs
         if obs.ok:
             if dt > 0:
-                ox, oy = _centroid(self._points).tolist()
+                ox, oy = self._c
                 nx, ny = obs.centroid
                 # alpha-filtered velocity: a single noisy frame must not throw the prediction
                 self._velocity = np.array(
                     [0.6 * vx + 0.4 * (nx - ox) / dt, 0.6 * vy + 0.4 * (ny - oy) / dt]
                 )
-            self._points = obs.points
+            self._points, self._box, self._c = obs.points, fit.box, obs.centroid
             self._bad_frames = 0
         else:
-            self._points = predicted
+            self._points, self._box, self._c = predicted, box_pred, first.c_in
             self._bad_frames += 1
         self._t = t
         return obs
@@ -252,97 +281,94 @@ class ContourTracker:
         """True once too many consecutive frames failed."""
         return self._bad_frames >= self.config.lost_after_frames
 
-    def _in_doubt(self, obs: BoundaryObservation, predicted: FloatArray) -> bool:
-        """A fit worth checking against the other prediction (see :meth:`update`)."""
+    def _in_doubt(self, obs: BoundaryObservation, c_pred: tuple[float, float]) -> bool:
+        """A fit worth checking against the other prediction (see :meth:`update`); ``c_pred``:
+        the centroid of the prediction."""
         if not obs.ok or obs.inlier_fraction < HYPOTHESIS_INLIERS:
             return True
-        c = _centroid(predicted)
-        miss = math.hypot(obs.centroid[0] - float(c[0]), obs.centroid[1] - float(c[1]))
+        miss = math.hypot(obs.centroid[0] - c_pred[0], obs.centroid[1] - c_pred[1])
         return miss > HYPOTHESIS_MISS * self.config.search_px
 
-    def _fit(
-        self, grad: _GradientCache, predicted: FloatArray, motion: Motion, relax: float
-    ) -> BoundaryObservation:
-        """Fit the contour from ``predicted``: search again along the updated contour while a
-        pass moves it by more than ``refine_px`` (at most ``max_passes`` passes)."""
-        obs, c_in, r_in, _ = self._step(grad, predicted, motion, relax)
-        for _ in range(self.config.max_passes - 1):
-            if not obs.ok:
-                break
-            moved = math.hypot(obs.centroid[0] - c_in[0], obs.centroid[1] - c_in[1])
-            if moved + abs(obs.r_px - r_in) <= self.config.refine_px:
-                break
-            again, c_in, r_in, _ = self._step(grad, obs.points, motion, relax)
-            if not again.ok:
-                break
-            obs = again
-        return obs  # carries its own pass's edge samples (_step), those of the pass kept
+    def _fit(  # noqa: PLR0917 - one fit's parameters
+        self,
+        grad: _GradientCache,
+        predicted: FloatArray,
+        box: Box | None,
+        motion: Motion,
+        relax: float,
+        max_passes: int,
+        refine_px: float,
+    ) -> _Fit:
+        """Fit the contour from ``predicted`` (its ``box`` if known): search again along the
+        updated contour while a pass moves it by more than ``refine_px`` (at most
+        ``max_passes`` passes); the observation of the last good pass.
 
-    # -- one measurement + fit on one image -------------------------------------------------
-    def _step(
-        self, grad: _GradientCache, pts: FloatArray, motion: Motion, relax: float
-    ) -> tuple[BoundaryObservation, tuple[float, float], float, EdgeSamples | None]:
-        """One pass: (observation, centroid of ``pts``, radius_of(``pts``), its edge samples).
-
-        The per-normal search and the robust fit run in :mod:`dffd.core.kernels` (or in their
-        NumPy twins while those compile: :mod:`dffd.core.kernel_dispatch`); the NumPy
-        reference is kept in tests/test_core_contour.py, which checks them against it.
+        One call of the ``fit_passes`` kernel does every pass (:mod:`dffd.core.kernels`, or its
+        NumPy twin while numba compiles: :mod:`dffd.core.kernel_dispatch`); it returns early
+        only when a pass needs a gradient window the frame's cache does not hold, which is
+        computed here before the kernel resumes (the first pass's window is computed ahead
+        when ``box`` is given). The NumPy reference pass is kept in tests/test_core_contour.py,
+        which checks the kernels against it.
         """
         cfg = self.config
-        pts = np.ascontiguousarray(pts, dtype=np.float64)
+        pts = np.ascontiguousarray(predicted, dtype=np.float64)
         n = len(pts)
         ws = self._workspace(n)
-        kernels = kernel_dispatch.current()  # one implementation for the whole pass
-        xmin, ymin, xmax, ymax = kernels.normals_and_box(pts, ws.normals)
+        state = ws.state
+        state.fill(0)
+        state[layout.ST_KEPT] = -1
+        kernels = kernel_dispatch.current()  # one implementation for the whole fit
         s = cfg.search_px
-        window = grad.window(xmin, ymin, xmax, ymax, s + 4)
-        if window is None:
-            has_window = False
-            bx = by = ws.mapx  # not read by the kernel
-        else:
-            gx, gy, x0, y0 = window
-            kernels.sample_maps(pts, ws.normals, s, float(x0), float(y0), ws.mapx, ws.mapy)
-            bx = np.asarray(cv2.remap(gx, ws.mapx, ws.mapy, cv2.INTER_LINEAR), dtype=np.float32)
-            by = np.asarray(cv2.remap(gy, ws.mapx, ws.mapy, cv2.INTER_LINEAR), dtype=np.float32)
-            has_window = True
-        new_pts = np.empty((n, 2))
-        peaks = np.empty(n)
-        out = ws.out
-        kernels.fit_pass(
-            bx, by, has_window, pts, ws.normals, self._polarity, s, layout.MOTION_CODE[motion],
-            relax, self._cfg_vec, grad.shape[1], grad.shape[0], new_pts, peaks, ws.mag,
-            ws.scratch, ws.design, out,
-        )  # fmt: skip
-        res = out.tolist()  # the kernel's scalars as floats at once (not one index each)
-        centroid_in = (res[layout.OUT_CX_IN], res[layout.OUT_CY_IN])
-        r_in = res[layout.OUT_R_IN]
+        margin = s + WINDOW_MARGIN_PX
+        h, w = grad.shape
+        if box is not None:
+            grad.window(*box, margin)  # the window the kernel's first pass will ask for
+        code = layout.MOTION_CODE[motion]
+        while True:
+            kernels.fit_passes(
+                grad.gx, grad.gy, grad.win, pts, self._polarity, s, code, relax, self._cfg_vec,
+                w, h, max_passes, refine_px, margin, state, ws.normals, ws.bx, ws.by, ws.mag,
+                ws.new_pts, ws.peaks, ws.scratch, ws.design, ws.out, ws.fit,
+            )  # fmt: skip
+            if not state[layout.ST_NEED_WINDOW]:
+                break
+            b = layout.ST_BOX
+            x0, y0, x1, y1 = state[b : b + 4].tolist()
+            grad.cover(x0, y0, x1, y1)
+        st = state.tolist()
+        kept = st[layout.ST_KEPT]
+        failed = st[layout.ST_FAILED] != 0
+        res = ws.out[kept].tolist()  # the kernel's scalars as floats at once
+        xmin, ymin, xmax, ymax, cx_in, cy_in = ws.fit.tolist()
+        c_in = (cx_in, cy_in)
         inlier_fraction = res[layout.OUT_INLIER_FRACTION]
-        if res[layout.OUT_STATUS] != 0:
-            return _bad(pts, centroid_in, r_in, n, inlier_fraction), centroid_in, r_in, None
+        if res[layout.OUT_STATUS] != 0:  # only a first pass is kept without enough inliers
+            bad = _bad(pts, c_in, res[layout.OUT_R_IN], n, inlier_fraction)
+            return _Fit(bad, failed, (xmin, ymin, xmax, ymax), c_in)
         edge_sigma2 = res[layout.OUT_EDGE_SIGMA2]
         ok = res[layout.OUT_OK] != 0
-        samples = (
-            EdgeSamples(
-                bx, by, ws.normals.copy(), ws.scratch[layout.SCRATCH_OFFSET].copy(),
-                ws.scratch[layout.SCRATCH_INLIER].copy(), s, self._polarity, cfg.trim_fraction,
-                edge_sigma2,
-            )
-            if has_window
-            else None
-        )  # fmt: skip
+        samples = None
+        if ok and st[layout.ST_HAS_WINDOW + kept]:
+            # the focus measure's input: the gradient samples of the pass kept (copies: the
+            # workspace is reused by the next fit)
+            scratch = ws.scratch[kept]
+            samples = EdgeSamples(
+                ws.bx[kept].copy(), ws.by[kept].copy(), ws.normals[kept].copy(),
+                scratch[layout.SCRATCH_OFFSET].copy(), scratch[layout.SCRATCH_INLIER].copy(), s,
+                self._polarity, cfg.trim_fraction, edge_sigma2,
+            )  # fmt: skip
         obs = BoundaryObservation(
-            points=new_pts,
+            points=ws.new_pts[kept].copy(),
             centroid=(res[layout.OUT_CX], res[layout.OUT_CY]),
             r_px=res[layout.OUT_R],
-            peak_sq=peaks,
+            peak_sq=ws.peaks[kept].copy(),
             inlier_fraction=inlier_fraction,
             residual_px=res[layout.OUT_RMS],
             ok=ok,
             edge_sigma_px=math.sqrt(edge_sigma2) if math.isfinite(edge_sigma2) else math.nan,
-            # a found contour carries the samples of its pass (the focus measure's input)
-            edge_samples=samples if ok else None,
+            edge_samples=samples,  # only a found contour carries them
         )
-        return obs, centroid_in, r_in, samples
+        return _Fit(obs, failed, (xmin, ymin, xmax, ymax), c_in)
 
     def _workspace(self, n: int) -> layout.Workspace:
         ws = self._ws
@@ -351,21 +377,13 @@ class ContourTracker:
         return ws
 
     def _estimate_polarity(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> float:
-        """+1 when the inside is brighter 3 px either side of the boundary (median over normals).
-
-        One bilinear sampling of the inside and outside points together and the median's sign
-        from a sorted list: the same samples and sign as ``np.median`` of two ``_sample`` calls,
-        at a third of the cost (130 -> ~40 us at acquisition).
-        """
-        n = len(pts)
-        normals = self._workspace(n).normals
-        kernel_dispatch.current().normals_and_box(pts, normals)
-        both = _sample(gray, np.concatenate((pts - 3.0 * normals, pts + 3.0 * normals)))
-        diff = (both[:n] - both[n:]).tolist()
-        diff.sort()
-        half = n // 2
-        median = diff[half] if n % 2 else 0.5 * (diff[half - 1] + diff[half])
-        return 1.0 if median >= 0 else -1.0
+        """+1 when the inside is brighter 3 px either side of the boundary (median over normals;
+        one kernel call: ~40 -> ~5 us at acquisition)."""
+        img = gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+        normals = self._workspace(len(pts)).normals[0]
+        kernels = kernel_dispatch.current()
+        kernels.normals_and_box(pts, normals)
+        return kernels.polarity(np.ascontiguousarray(img), pts, normals, POLARITY_DEPTH_PX)
 
 
 # -- acquisition ----------------------------------------------------------------------------
@@ -512,50 +530,24 @@ def _bad(
     )
 
 
-def _sample(gray: npt.NDArray[np.uint8], pts: FloatArray) -> FloatArray:
-    """Bilinear samples of ``gray`` at ``pts`` (border replicated), in float32 as remap gives.
-
-    Only the points' bounding box (± 2 px, clipped to the image) is converted to float32, not
-    the frame: shifting float32 coordinates by the box's integer corner is exact, so remap
-    reads the same pixels with the same weights, and where the box meets the image border it
-    replicates the same pixels.
-    """
-    img = gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
-    mx = pts[:, 0].astype(np.float32).reshape(1, -1)
-    my = pts[:, 1].astype(np.float32).reshape(1, -1)
-    h, w = img.shape[:2]
-    lo_x, hi_x, lo_y, hi_y = float(mx.min()), float(mx.max()), float(my.min()), float(my.max())
-    if math.isfinite(lo_x + hi_x + lo_y + hi_y):
-        x0 = min(max(math.floor(lo_x) - 2, 0), w - 1)
-        y0 = min(max(math.floor(lo_y) - 2, 0), h - 1)
-        x1 = max(min(math.ceil(hi_x) + 3, w), x0 + 1)
-        y1 = max(min(math.ceil(hi_y) + 3, h), y0 + 1)
-    else:
-        x0, y0, x1, y1 = 0, 0, w, h  # NaN or infinite coordinates: the whole frame
-    crop = img[y0:y1, x0:x1].astype(np.float32)
-    out = cv2.remap(
-        crop, mx - np.float32(x0), my - np.float32(y0), cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )  # fmt: skip
-    return np.asarray(out, dtype=np.float64).ravel()
-
-
 class _GradientCache:
     """The pre-smoothed gradient of one frame around the target, computed once per frame.
 
     The passes of one update search nearly the same neighbourhood: the window is grown by
     ``GRADIENT_SLACK_PX`` so that the following passes (the contour moves by a pixel or two)
-    reuse it; a pass that leaves it recomputes a window around its own contour.
+    reuse it; a pass that leaves it recomputes a window around its own contour. ``win`` holds
+    the window's corners in the frame (x0, y0, x1, y1; all 0 before the first), ``gx``, ``gy``
+    its gradient.
     """
 
-    __slots__ = ("_box", "_gx", "_gy", "_sigma", "gray", "shape")
+    __slots__ = ("_sigma", "gray", "gx", "gy", "shape", "win")
 
     def __init__(self, gray: npt.NDArray[np.uint8], presmooth_sigma_px: float) -> None:
         self.gray = gray
         self._sigma = presmooth_sigma_px
-        self._box: tuple[int, int, int, int] | None = None
-        self._gx: npt.NDArray[np.float32] | None = None
-        self._gy: npt.NDArray[np.float32] | None = None
+        self.win = np.zeros(layout.N_WIN, dtype=np.int64)
+        self.gx: npt.NDArray[np.float32] = _NO_WINDOW
+        self.gy: npt.NDArray[np.float32] = _NO_WINDOW
         self.shape: tuple[int, int] = (int(gray.shape[0]), int(gray.shape[1]))
 
     def window(
@@ -569,20 +561,21 @@ class _GradientCache:
         y1 = min(math.ceil(ymax) + margin + 1, h)
         if x1 - x0 < 4 or y1 - y0 < 4:
             return None
-        box = self._box
-        if box is None or x0 < box[0] or y0 < box[1] or x1 > box[2] or y1 > box[3]:
+        self.cover(x0, y0, x1, y1)
+        return self.gx, self.gy, int(self.win[0]), int(self.win[1])
+
+    def cover(self, x0: int, y0: int, x1: int, y1: int) -> None:
+        """Make the window hold the frame's box [x0, x1) × [y0, y1) (recomputed if it does not)."""
+        bx0, by0, bx1, by1 = self.win.tolist()
+        if x0 < bx0 or y0 < by0 or x1 > bx1 or y1 > by1 or bx1 <= bx0:
+            h, w = self.shape
             slack = GRADIENT_SLACK_PX
             box = (max(x0 - slack, 0), max(y0 - slack, 0), min(x1 + slack, w), min(y1 + slack, h))
-            self._gx, self._gy = gradient(self.gray[box[1] : box[3], box[0] : box[2]], self._sigma)
-            self._box = box
-        assert self._gx is not None
-        assert self._gy is not None
-        return self._gx, self._gy, box[0], box[1]
+            self.gx, self.gy = gradient(self.gray[box[1] : box[3], box[0] : box[2]], self._sigma)
+            self.win[:] = box
 
 
-def _centroid(points: FloatArray) -> FloatArray:
-    """``points.mean(axis=0)`` with the same sum and division, without ``mean``'s overhead."""
-    return np.asarray(np.add.reduce(points, axis=0) / len(points), dtype=np.float64)
+_NO_WINDOW: npt.NDArray[np.float32] = np.zeros((0, 0), dtype=np.float32)
 
 
 @functools.cache

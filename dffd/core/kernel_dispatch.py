@@ -35,18 +35,59 @@ class KernelSet(Protocol):
     ) -> tuple[float, float, float, float]:
         """Outward normals into ``normals``; the bounding box."""
 
-    def sample_maps(  # noqa: PLR0917 - the kernels' positional signature
+    def polarity(
+        self, gray: npt.NDArray[np.uint8], pts: FloatArray, normals: FloatArray, d: float, /
+    ) -> float:
+        """+1 when the image is brighter inside the contour than outside, else −1."""
+
+    def resample(self, points: FloatArray, out: FloatArray, /) -> None:
+        """Points uniformly spaced in arc length along a closed polygon, into ``out``."""
+
+    def sample_normals(  # noqa: PLR0917 - the kernels' positional signature
         self,
+        gx: F32Array,
+        gy: F32Array,
+        x0: float,
+        y0: float,
         pts: FloatArray,
         normals: FloatArray,
         s: int,
-        x0: float,
-        y0: float,
-        mapx: F32Array,
-        mapy: F32Array,
+        bx: F32Array,
+        by: F32Array,
         /,
     ) -> None:
-        """Sample positions along every normal."""
+        """Bilinear gradient samples along every normal."""
+
+    def fit_passes(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        gx: F32Array,
+        gy: F32Array,
+        win: IntArray,
+        pts_in: FloatArray,
+        polarity: float,
+        s: int,
+        motion: int,
+        relax: float,
+        cfg: FloatArray,
+        width: int,
+        height: int,
+        max_passes: int,
+        refine_px: float,
+        margin: int,
+        state: IntArray,
+        normals: FloatArray,
+        bx: F32Array,
+        by: F32Array,
+        mag: F32Array,
+        new_pts: FloatArray,
+        peaks: FloatArray,
+        scratch: FloatArray,
+        design: FloatArray,
+        out: FloatArray,
+        fit: FloatArray,
+        /,
+    ) -> None:
+        """The passes of one contour fit (resumable when a pass needs another window)."""
 
     def fit_pass(  # noqa: PLR0917 - the kernels' positional signature
         self,

@@ -15,6 +15,12 @@ __all__ = [
     "COMBINE_SIZE_VAR",
     "COMBINE_STATE",
     "COMBINE_VAR",
+    "FIT_CX_IN",
+    "FIT_CY_IN",
+    "FIT_XMAX",
+    "FIT_XMIN",
+    "FIT_YMAX",
+    "FIT_YMIN",
     "HUBER_K_PX",
     "IRLS_ITERATIONS",
     "MODEL_CA",
@@ -22,8 +28,11 @@ __all__ = [
     "MODEL_CV",
     "MOTION_CODE",
     "N_COMBINE",
+    "N_FIT",
     "N_OUT",
     "N_SCRATCH",
+    "N_STATE",
+    "N_WIN",
     "OUTLIER_PX",
     "OUT_CX",
     "OUT_CX_IN",
@@ -39,6 +48,12 @@ __all__ = [
     "RIDGE",
     "SCRATCH_INLIER",
     "SCRATCH_OFFSET",
+    "ST_BOX",
+    "ST_FAILED",
+    "ST_HAS_WINDOW",
+    "ST_KEPT",
+    "ST_NEED_WINDOW",
+    "ST_PASSES",
     "S_INTERIOR",
     "S_OFFSET",
     "S_PEAK",
@@ -72,20 +87,46 @@ N_SCRATCH = 10
 TINY = 1e-6  # added before the log of |∇I|² (log-parabola), as in the reference
 
 
-class Workspace:
-    """Preallocated arrays of one tracker's passes (no allocation per pass but the outputs)."""
+# slots of fit_passes' state vector (int64): whether it stopped for a gradient window (the box
+# it needs then), the passes done, the buffer of the pass kept (-1: none yet), whether a pass
+# after the first failed, and per buffer whether its pass had a window (edge samples)
+ST_NEED_WINDOW, ST_PASSES, ST_KEPT, ST_FAILED = 0, 1, 2, 3
+ST_BOX = 4  # 4 slots: x0, y0, x1, y1 of the window the next pass needs
+ST_HAS_WINDOW = 8  # 2 slots, one per buffer
+N_STATE = 10
+# slots of fit_passes' float results: the box of the kept pass's new contour (NaN when it has
+# none) and the centroid of the fit's input points (its first pass's)
+FIT_XMIN, FIT_YMIN, FIT_XMAX, FIT_YMAX, FIT_CX_IN, FIT_CY_IN = range(6)
+N_FIT = 6
+# slots of the gradient window vector (int64): x0, y0, x1, y1 in the frame (x1 <= x0: none)
+N_WIN = 4
 
-    __slots__ = ("design", "mag", "mapx", "mapy", "n", "normals", "out", "scratch")
+
+class Workspace:
+    """Preallocated arrays of one tracker's passes (no allocation per pass but the outputs).
+
+    The per-pass outputs are double-buffered (first axis 2): a pass writes the buffer that does
+    not hold the pass kept so far, so a failed refinement leaves the kept one intact.
+    """
+
+    __slots__ = (
+        "bx", "by", "design", "fit", "mag", "n", "new_pts", "normals", "out", "peaks",
+        "scratch", "state",
+    )  # fmt: skip
 
     def __init__(self, n: int, n_steps: int) -> None:
         self.n = n
-        self.normals = np.empty((n, 2))
-        self.mapx = np.empty((n, n_steps), dtype=np.float32)
-        self.mapy = np.empty((n, n_steps), dtype=np.float32)
+        self.normals = np.empty((2, n, 2))
+        self.bx = np.zeros((2, n, n_steps), dtype=np.float32)
+        self.by = np.zeros((2, n, n_steps), dtype=np.float32)
         self.mag = np.empty((n, n_steps), dtype=np.float32)
-        self.scratch = np.empty((N_SCRATCH, n))
+        self.new_pts = np.empty((2, n, 2))
+        self.peaks = np.empty((2, n))
+        self.scratch = np.empty((2, N_SCRATCH, n))
         self.design = np.empty((n, 6))
-        self.out = np.empty(N_OUT)
+        self.out = np.empty((2, N_OUT))
+        self.state = np.zeros(N_STATE, dtype=np.int64)
+        self.fit = np.empty(N_FIT)
 
 
 # -- the 3D tracker's kernels (dffd.core.tracking3d, dffd.core.kernels_track) ----------------

@@ -16,6 +16,12 @@ import numpy.typing as npt
 from dffd.core.kernel_jit import CacheReport, cache_report
 from dffd.core.kernel_jit import jit as _jit
 from dffd.core.kernel_layout import (  # shared with the NumPy twins (kernels_numpy)
+    FIT_CX_IN,
+    FIT_CY_IN,
+    FIT_XMAX,
+    FIT_XMIN,
+    FIT_YMAX,
+    FIT_YMIN,
     HUBER_K_PX,
     IRLS_ITERATIONS,
     OUT_CX,
@@ -31,6 +37,12 @@ from dffd.core.kernel_layout import (  # shared with the NumPy twins (kernels_nu
     OUT_STATUS,
     OUTLIER_PX,
     RIDGE,
+    ST_BOX,
+    ST_FAILED,
+    ST_HAS_WINDOW,
+    ST_KEPT,
+    ST_NEED_WINDOW,
+    ST_PASSES,
 )
 from dffd.core.kernel_layout import S_INTERIOR as _S_INTERIOR
 from dffd.core.kernel_layout import S_OFFSET as _S_OFFSET
@@ -43,6 +55,7 @@ from dffd.core.kernel_layout import S_W as _S_W
 from dffd.core.kernel_layout import S_WIDTH2 as _S_WIDTH2
 from dffd.core.kernel_layout import S_WNEW as _S_WNEW
 from dffd.core.kernel_layout import TINY as _TINY
+from dffd.core.kernels_edges import edge_moments  # the focus measure's kernel, dispatched too
 from dffd.core.kernels_track import (  # the 3D tracker's kernels, dispatched with these
     track_combine,
     track_predict,
@@ -55,8 +68,11 @@ __all__ = [
     "cache_report",
     "edge_moments",
     "fit_pass",
+    "fit_passes",
     "normals_and_box",
-    "sample_maps",
+    "polarity",
+    "resample",
+    "sample_normals",
     "track_combine",
     "track_predict",
     "track_size_update",
@@ -67,6 +83,9 @@ FloatArray = npt.NDArray[np.float64]
 
 # numba types of the kernels' arrays (all C-contiguous)
 _M, _M32, _V = "float64[:, ::1]", "float32[:, ::1]", "float64[::1]"
+_T, _T32, _I = "float64[:, :, ::1]", "float32[:, :, ::1]", "int64[::1]"
+# sample coordinates beyond this (or NaN) are outside any window: no integer conversion
+_HUGE = 1e9
 
 
 @_jit(f"UniTuple(float64, 4)({_M}, {_M})")
@@ -97,22 +116,81 @@ def normals_and_box(pts: FloatArray, normals: FloatArray) -> tuple[float, float,
     return xmin, ymin, xmax, ymax
 
 
-@_jit(f"void({_M}, {_M}, int64, float64, float64, {_M32}, {_M32})")
-def sample_maps(  # noqa: PLR0917 - numba kernels take positional arguments
+@_jit("float32(float32, float32, float32, float32, float64, float64)")
+def _lerp2(  # noqa: PLR0917 - numba kernels take positional arguments
+    p00: np.float32, p01: np.float32, p10: np.float32, p11: np.float32, a: float, b: float
+) -> np.float32:
+    """Bilinear interpolation as OpenCV 5's remap: ``p00 + a (p01 − p00)`` per row, then
+    between the rows, each a float32 fused multiply-add (exact in float64, rounded once)."""
+    top = np.float32(a * float(p01 - p00) + float(p00))
+    bot = np.float32(a * float(p11 - p10) + float(p10))
+    return np.float32(b * float(bot - top) + float(top))
+
+
+@_jit(f"float32({_M32}, int64, int64, float64, float64, int64, int64)")
+def _bilinear(  # noqa: PLR0917 - numba kernels take positional arguments
+    g: npt.NDArray[np.float32], ix: int, iy: int, a: float, b: float, w: int, h: int
+) -> np.float32:
+    """One bilinear sample at a window's border: pixels outside ``g`` count as 0."""
+    zero = np.float32(0.0)
+    in_x0 = 0 <= ix < w
+    in_x1 = 0 <= ix + 1 < w
+    p00 = p01 = p10 = p11 = zero
+    if 0 <= iy < h:
+        p00 = g[iy, ix] if in_x0 else zero
+        p01 = g[iy, ix + 1] if in_x1 else zero
+    if 0 <= iy + 1 < h:
+        p10 = g[iy + 1, ix] if in_x0 else zero
+        p11 = g[iy + 1, ix + 1] if in_x1 else zero
+    return _lerp2(p00, p01, p10, p11, a, b)
+
+
+@_jit(f"void({_M32}, {_M32}, float64, float64, {_M}, {_M}, int64, {_M32}, {_M32})")
+def sample_normals(  # noqa: PLR0917 - numba kernels take positional arguments
+    gx: npt.NDArray[np.float32],
+    gy: npt.NDArray[np.float32],
+    x0: float,
+    y0: float,
     pts: FloatArray,
     normals: FloatArray,
     s: int,
-    x0: float,
-    y0: float,
-    mapx: npt.NDArray[np.float32],
-    mapy: npt.NDArray[np.float32],
+    bx: npt.NDArray[np.float32],
+    by: npt.NDArray[np.float32],
 ) -> None:
-    """Sample positions along every normal, −s … s px, in window coordinates (float32)."""
+    """Bilinear samples of the gradient window (corner ``x0``, ``y0`` in the frame) along every
+    normal, −s … s px, into ``bx``, ``by``; 0 outside the window.
+
+    The same values as ``cv2.remap(g, mapx, mapy, INTER_LINEAR)`` on float32 maps (OpenCV 5:
+    exact float coordinates, ``p00 + a (p01 − p00)`` with fused multiply-adds), which it
+    replaced: the fused multiply-add is exact in float64 (24-bit products), rounded to float32.
+    """
+    h, w = gx.shape
     for i in range(pts.shape[0]):
         for j in range(2 * s + 1):
             step = float(j - s)
-            mapx[i, j] = np.float32(pts[i, 0] + step * normals[i, 0] - x0)
-            mapy[i, j] = np.float32(pts[i, 1] + step * normals[i, 1] - y0)
+            mx = np.float32(pts[i, 0] + step * normals[i, 0] - x0)
+            my = np.float32(pts[i, 1] + step * normals[i, 1] - y0)
+            if 0 <= mx < w - 1 and 0 <= my < h - 1:  # all four pixels inside: the common case
+                ix = int(mx)
+                iy = int(my)
+                a = float(mx) - ix  # exact: both are float32 values
+                b = float(my) - iy
+                bx[i, j] = _lerp2(
+                    gx[iy, ix], gx[iy, ix + 1], gx[iy + 1, ix], gx[iy + 1, ix + 1], a, b
+                )
+                by[i, j] = _lerp2(
+                    gy[iy, ix], gy[iy, ix + 1], gy[iy + 1, ix], gy[iy + 1, ix + 1], a, b
+                )
+            elif abs(mx) < _HUGE and abs(my) < _HUGE:
+                ix = math.floor(mx)
+                iy = math.floor(my)
+                a = float(mx) - ix
+                b = float(my) - iy
+                bx[i, j] = _bilinear(gx, ix, iy, a, b, w, h)
+                by[i, j] = _bilinear(gy, ix, iy, a, b, w, h)
+            else:  # NaN or far outside
+                bx[i, j] = np.float32(0.0)
+                by[i, j] = np.float32(0.0)
 
 
 @_jit(f"int64({_M}, {_M}, float64, float64, float64, int64, {_M})")
@@ -182,6 +260,9 @@ def _kernel_resample(points: FloatArray, out: FloatArray) -> None:
         s[i] = i * (total / n)
     out[:, 0] = np.interp(s, cum, xs)
     out[:, 1] = np.interp(s, cum, ys)
+
+
+resample = _kernel_resample  # public: ContourTracker.start resamples the acquisition polygon
 
 
 @_jit(f"void({_M}, {_V}, int64, {_V})")
@@ -471,157 +552,152 @@ def fit_pass(  # noqa: PLR0917 - numba kernels take positional arguments
     out[OUT_EDGE_SIGMA2] = edge_sigma2
 
 
+@_jit(f"void({_M}, {_M}, boolean, {_V})")
+def _fit_results(pts_in: FloatArray, kept: FloatArray, found: bool, fit: FloatArray) -> None:
+    """fit_passes' float results: the box of ``kept`` (NaN unless ``found``), the centroid of
+    ``pts_in`` (the same sums as fit_pass's, so the same value as its OUT_CX_IN)."""
+    n = pts_in.shape[0]
+    cx = 0.0
+    cy = 0.0
+    for i in range(n):
+        cx += pts_in[i, 0]
+        cy += pts_in[i, 1]
+    fit[FIT_CX_IN] = cx / n
+    fit[FIT_CY_IN] = cy / n
+    xmin = ymin = xmax = ymax = np.nan
+    if found:
+        xmin = xmax = kept[0, 0]
+        ymin = ymax = kept[0, 1]
+        for i in range(n):
+            xmin = min(xmin, kept[i, 0])
+            xmax = max(xmax, kept[i, 0])
+            ymin = min(ymin, kept[i, 1])
+            ymax = max(ymax, kept[i, 1])
+    fit[FIT_XMIN] = xmin
+    fit[FIT_YMIN] = ymin
+    fit[FIT_XMAX] = xmax
+    fit[FIT_YMAX] = ymax
+
+
 @_jit(
-    f"void({_M32}, {_M32}, {_M}, float64, int64, {_V}, {_V}, float64, float64, float64, int64, "
-    f"float64, {_V}, {_V}, {_V})"
+    f"void({_M32}, {_M32}, {_I}, {_M}, float64, int64, int64, float64, {_V}, int64, int64, "
+    f"int64, float64, int64, {_I}, {_T}, {_T32}, {_T32}, {_M32}, {_T}, {_M}, {_T}, {_M}, {_M}, "
+    f"{_V})"
 )
-def edge_moments(  # noqa: PLR0917 - numba kernels take positional arguments
-    bx: npt.NDArray[np.float32],
-    by: npt.NDArray[np.float32],
-    normals: FloatArray,
+def fit_passes(  # noqa: PLR0917 - numba kernels take positional arguments
+    gx: npt.NDArray[np.float32],
+    gy: npt.NDArray[np.float32],
+    win: npt.NDArray[np.int64],
+    pts_in: FloatArray,
     polarity: float,
     s: int,
-    offset: FloatArray,
-    inlier: FloatArray,
-    sigma2_hint: float,
-    k_sigma: float,
-    min_half: float,
-    passes: int,
-    trim_fraction: float,
-    var_out: FloatArray,
-    mass_out: FloatArray,
-    pooled: FloatArray,
+    motion: int,
+    relax: float,
+    cfg: FloatArray,
+    width: int,
+    height: int,
+    max_passes: int,
+    refine_px: float,
+    margin: int,
+    state: npt.NDArray[np.int64],
+    normals: FloatArray,
+    bx: npt.NDArray[np.float32],
+    by: npt.NDArray[np.float32],
+    mag: npt.NDArray[np.float32],
+    new_pts: FloatArray,
+    peaks: FloatArray,
+    scratch: FloatArray,
+    design: FloatArray,
+    out: FloatArray,
+    fit: FloatArray,
 ) -> None:
-    """Second moment of the edge-derivative profile along every inlier normal (focus measure).
+    """The passes of one contour fit from ``pts_in`` (see ContourTracker._fit), in one call.
 
-    Profile ``p_j = −polarity · (∇I · n)`` at ``x_j = j − s`` px. A window of half-width ``W``
-    (linear taper over the last pixel, so the moment is continuous in the centre and in ``W``)
-    is centred on the edge, re-centred once on the profile's centroid ``μ``; the moment is
-    ``Σ w p (x − μ)² / Σ w p``. Blur variances add under convolution whatever the PSF's shape,
-    so this grows as ``σ0² + c (v0 − v)²`` exactly where the peak of ``p`` does not. ``W`` starts
-    at the whole line and becomes ``k_sigma`` times the mass-weighted mean spread of the frame
-    (one blur for the whole target) for ``passes`` passes; the first window is ``k_sigma``
-    times the square root of ``sigma2_hint`` (the log-parabola edge width of the shape fit:
-    a Gaussian's, only a starting point) when it is finite. A normal whose window would leave the
-    sampled line, or whose profile has no positive mass, gives NaN. ``pooled`` gets the focus
-    cost (g, σ_g): the mass-weighted mean of the moments after dropping ``trim_fraction`` of the
-    normals at each end of the sorted moments, and its standard error (NaN with < 8 normals) —
-    the same as ``dffd.core.focus.edge_variance_cost``.
+    Each pass: normals, the samples of the gradient window ``win`` (x0, y0, x1, y1 in the frame;
+    ``gx``, ``gy`` its values) along them, :func:`fit_pass`. Passes go on while the last one
+    moved the contour by more than ``refine_px`` (centroid shift + |Δr|), at most
+    ``max_passes``; a pass that fails after the first stops them and the last good one is kept
+    (``state``: :data:`~dffd.core.kernel_layout.ST_KEPT` names its buffer). A pass whose
+    points ± ``margin`` leave the window stops the call with ``ST_NEED_WINDOW`` set and the box
+    it needs in ``ST_BOX``: the caller computes that window and calls again with the same
+    ``state`` to resume. ``fit`` receives the box of the kept contour and the centroid of
+    ``pts_in`` (:data:`~dffd.core.kernel_layout.FIT_XMIN` …).
     """
-    n = offset.shape[0]
-    half = float(s) - 0.5
-    if math.isfinite(sigma2_hint) and sigma2_hint > 0.0:
-        half = max(min(k_sigma * math.sqrt(sigma2_hint), half), min_half)
-    prof = np.zeros((n, 2 * s + 1))  # the edge-derivative profiles, computed once
-    for i in range(n):
-        var_out[i] = np.nan
-        mass_out[i] = np.nan
-        if inlier[i] != 0:
-            nx = normals[i, 0] * -polarity
-            ny = normals[i, 1] * -polarity
-            for j in range(2 * s + 1):
-                prof[i, j] = float(bx[i, j]) * nx + float(by[i, j]) * ny
-    for k in range(passes):
-        final = k == passes - 1
-        num = 0.0
-        den = 0.0
-        for i in range(n):
-            var_out[i] = np.nan
-            mass_out[i] = np.nan
-            if inlier[i] == 0:
-                continue
-            c = offset[i]
-            mu = c
-            m0 = 0.0
-            m2 = 0.0
-            good = True
-            hw = half
-            for step in range(2):  # centre on the peak, then on the centroid
-                if abs(c) + hw > s - 0.5 + 1e-9:
-                    if final:  # a truncated window would bias the moment: drop the normal
-                        good = False
-                        break
-                    hw = s - 0.5 - abs(c)  # the adaptation passes only need a rough spread
-                    if hw < min_half:
-                        good = False
-                        break
-                lo = c - hw
-                hi = c + hw
-                m0 = 0.0
-                m1 = 0.0
-                m2 = 0.0
-                j0 = max(math.floor(lo), -s)
-                j1 = min(math.ceil(hi), s)
-                for x in range(j0, j1 + 1):
-                    w = min(max(hw + 0.5 - abs(x - c), 0.0), 1.0)
-                    if w <= 0.0:
-                        continue
-                    p = w * prof[i, x + s]
-                    d = x - c
-                    m0 += p
-                    m1 += p * d
-                    m2 += p * d * d
-                if m0 <= 0.0:
-                    good = False
-                    break
-                mu = c + m1 / m0
-                if step == 0:
-                    c = mu
-            if not good:
-                continue
-            # the last pass's moments are about its window centre c; move them to its centroid
-            d0 = mu - c
-            v = m2 / m0 - d0 * d0
-            if v <= 0.0:
-                continue
-            var_out[i] = v
-            mass_out[i] = m0
-            num += m0 * v
-            den += m0
-        if den <= 0.0:
+    k = state[ST_PASSES]
+    kept = state[ST_KEPT]
+    state[ST_NEED_WINDOW] = 0
+    while k < max_passes:
+        b = 0 if kept < 0 else 1 - kept
+        src = pts_in if k == 0 else new_pts[kept]
+        xmin, ymin, xmax, ymax = normals_and_box(src, normals[b])
+        x0 = max(math.floor(xmin) - margin, 0)
+        y0 = max(math.floor(ymin) - margin, 0)
+        x1 = min(math.ceil(xmax) + margin + 1, width)
+        y1 = min(math.ceil(ymax) + margin + 1, height)
+        has_window = x1 - x0 >= 4 and y1 - y0 >= 4
+        if has_window and (x0 < win[0] or y0 < win[1] or x1 > win[2] or y1 > win[3]):
+            state[ST_NEED_WINDOW] = 1
+            state[ST_BOX] = x0
+            state[ST_BOX + 1] = y0
+            state[ST_BOX + 2] = x1
+            state[ST_BOX + 3] = y1
+            state[ST_PASSES] = k
+            state[ST_KEPT] = kept
+            return
+        if has_window:
+            sample_normals(gx, gy, float(win[0]), float(win[1]), src, normals[b], s, bx[b], by[b])
+        state[ST_HAS_WINDOW + b] = 1 if has_window else 0
+        fit_pass(
+            bx[b], by[b], has_window, src, normals[b], polarity, s, motion, relax, cfg, width,
+            height, new_pts[b], peaks[b], mag, scratch[b], design, out[b],
+        )  # fmt: skip
+        k += 1
+        found = out[b, OUT_STATUS] == 0 and out[b, OUT_OK] != 0
+        if kept >= 0 and not found:
+            state[ST_FAILED] = 1  # the refinement failed: the pass before it is kept
             break
-        half = max(min(k_sigma * math.sqrt(num / den), float(s) - 0.5), min_half)
-    pooled[0] = np.nan
-    pooled[1] = np.nan
-    m = 0
+        kept = b
+        if not found:
+            break
+        moved = math.hypot(out[b, OUT_CX] - out[b, OUT_CX_IN], out[b, OUT_CY] - out[b, OUT_CY_IN])
+        if moved + abs(out[b, OUT_R] - out[b, OUT_R_IN]) <= refine_px:
+            break
+    state[ST_PASSES] = k
+    state[ST_KEPT] = kept
+    _fit_results(pts_in, new_pts[kept], out[kept, OUT_STATUS] == 0, fit)
+
+
+@_jit("float32(uint8[:, ::1], float64, float64, int64, int64)")
+def _sample_u8(gray: npt.NDArray[np.uint8], x: float, y: float, w: int, h: int) -> np.float32:
+    """One bilinear sample of ``gray`` at float32(x, y), border replicated (NaN: 0)."""
+    mx = np.float32(x)
+    my = np.float32(y)
+    if not (abs(mx) < _HUGE and abs(my) < _HUGE):
+        return np.float32(0.0)
+    ix = math.floor(mx)
+    iy = math.floor(my)
+    a = float(mx) - ix
+    b = float(my) - iy
+    x0 = min(max(ix, 0), w - 1)
+    x1 = min(max(ix + 1, 0), w - 1)
+    y0 = min(max(iy, 0), h - 1)
+    y1 = min(max(iy + 1, 0), h - 1)
+    return _lerp2(
+        np.float32(gray[y0, x0]), np.float32(gray[y0, x1]), np.float32(gray[y1, x0]),
+        np.float32(gray[y1, x1]), a, b,
+    )  # fmt: skip
+
+
+@_jit(f"float64(uint8[:, ::1], {_M}, {_M}, float64)")
+def polarity(gray: npt.NDArray[np.uint8], pts: FloatArray, normals: FloatArray, d: float) -> float:
+    """+1 when the image is brighter ``d`` px inside the contour than outside (median over the
+    normals), else −1: bilinear samples as ``cv2.remap`` (float32 coordinates, replicated
+    border; see :func:`sample_normals`) of ``pts ∓ d·normals``."""
+    n = pts.shape[0]
+    diff = np.empty(n)
+    h, w = gray.shape
     for i in range(n):
-        if math.isfinite(var_out[i]):
-            m += 1
-    if m < 8:
-        return
-    values = np.empty(m)
-    index = np.empty(m, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        if math.isfinite(var_out[i]):
-            values[m] = var_out[i]
-            index[m] = i
-            m += 1
-    order = np.arange(m)  # insertion sort by moment (stable, ≤ 64 items)
-    for q in range(1, m):
-        key = order[q]
-        r = q - 1
-        while r >= 0 and values[order[r]] > values[key]:
-            order[r + 1] = order[r]
-            r -= 1
-        order[r + 1] = key
-    cut = int(trim_fraction * m)
-    lo = cut if m - 2 * cut >= 4 else 0
-    hi = m - cut if m - 2 * cut >= 4 else m
-    total = 0.0
-    acc = 0.0
-    for q in range(lo, hi):
-        i = index[order[q]]
-        total += mass_out[i]
-        acc += mass_out[i] * var_out[i]
-    if total <= 0.0:
-        return
-    g = acc / total
-    k = hi - lo
-    dev2 = 0.0
-    for q in range(lo, hi):
-        i = index[order[q]]
-        d = (var_out[i] - g) * mass_out[i]
-        dev2 += d * d
-    pooled[0] = g
-    pooled[1] = math.sqrt(dev2 * k / (k - 1)) / total
+        inner = _sample_u8(gray, pts[i, 0] - d * normals[i, 0], pts[i, 1] - d * normals[i, 1], w, h)
+        outer = _sample_u8(gray, pts[i, 0] + d * normals[i, 0], pts[i, 1] + d * normals[i, 1], w, h)
+        diff[i] = float(inner) - float(outer)
+    return 1.0 if _kernel_median(diff) >= 0 else -1.0

@@ -17,6 +17,12 @@ import numpy as np
 import numpy.typing as npt
 
 from dffd.core.kernel_layout import (
+    FIT_CX_IN,
+    FIT_CY_IN,
+    FIT_XMAX,
+    FIT_XMIN,
+    FIT_YMAX,
+    FIT_YMIN,
     HUBER_K_PX,
     IRLS_ITERATIONS,
     OUT_CX,
@@ -39,6 +45,12 @@ from dffd.core.kernel_layout import (
     S_VALID,
     S_W,
     S_WIDTH2,
+    ST_BOX,
+    ST_FAILED,
+    ST_HAS_WINDOW,
+    ST_KEPT,
+    ST_NEED_WINDOW,
+    ST_PASSES,
     TINY,
 )
 from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatched with these
@@ -51,8 +63,11 @@ from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatche
 __all__ = [
     "edge_moments",
     "fit_pass",
+    "fit_passes",
     "normals_and_box",
-    "sample_maps",
+    "polarity",
+    "resample",
+    "sample_normals",
     "track_combine",
     "track_predict",
     "track_size_update",
@@ -62,6 +77,9 @@ __all__ = [
 FloatArray = npt.NDArray[np.float64]
 F32Array = npt.NDArray[np.float32]
 BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.int64]
+# sample coordinates beyond this (or NaN) are outside any window (as in the compiled kernel)
+_HUGE = 1e9
 
 
 def normals_and_box(pts: FloatArray, normals: FloatArray) -> tuple[float, float, float, float]:
@@ -80,19 +98,125 @@ def normals_and_box(pts: FloatArray, normals: FloatArray) -> tuple[float, float,
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
-def sample_maps(  # noqa: PLR0917 - the compiled kernels' positional signature
+def sample_normals(  # noqa: PLR0917 - the compiled kernels' positional signature
+    gx: F32Array,
+    gy: F32Array,
+    x0: float,
+    y0: float,
     pts: FloatArray,
     normals: FloatArray,
     s: int,
-    x0: float,
-    y0: float,
-    mapx: F32Array,
-    mapy: F32Array,
+    bx: F32Array,
+    by: F32Array,
 ) -> None:
-    """Sample positions along every normal, −s … s px, in window coordinates (float32)."""
+    """Bilinear samples of the gradient window along every normal (see kernels.sample_normals)."""
     steps = np.arange(-s, s + 1, dtype=np.float64)[None, :]
-    mapx[:] = pts[:, 0:1] + steps * normals[:, 0:1] - x0
-    mapy[:] = pts[:, 1:2] + steps * normals[:, 1:2] - y0
+    mx = (pts[:, 0:1] + steps * normals[:, 0:1] - x0).astype(np.float32)
+    my = (pts[:, 1:2] + steps * normals[:, 1:2] - y0).astype(np.float32)
+    finite = (np.abs(mx) < _HUGE) & (np.abs(my) < _HUGE)
+    mx = np.where(finite, mx, np.float32(-2.0))  # a point outside the window: samples 0
+    my = np.where(finite, my, np.float32(-2.0))
+    fx, fy = np.floor(mx), np.floor(my)
+    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
+    a, b = (mx - fx).astype(np.float64), (my - fy).astype(np.float64)
+    for g, dst in ((gx, bx), (gy, by)):
+        p00, p01 = _pixels(g, ix, iy), _pixels(g, ix + 1, iy)
+        p10, p11 = _pixels(g, ix, iy + 1), _pixels(g, ix + 1, iy + 1)
+        top = (a * (p01 - p00).astype(np.float64) + p00).astype(np.float32)
+        bot = (a * (p11 - p10).astype(np.float64) + p10).astype(np.float32)
+        dst[:] = (b * (bot - top).astype(np.float64) + top).astype(np.float32)
+
+
+def fit_passes(  # noqa: PLR0917 - the compiled kernels' positional signature
+    gx: F32Array,
+    gy: F32Array,
+    win: IntArray,
+    pts_in: FloatArray,
+    polarity: float,
+    s: int,
+    motion: int,
+    relax: float,
+    cfg: FloatArray,
+    width: int,
+    height: int,
+    max_passes: int,
+    refine_px: float,
+    margin: int,
+    state: IntArray,
+    normals: FloatArray,
+    bx: F32Array,
+    by: F32Array,
+    mag: F32Array,
+    new_pts: FloatArray,
+    peaks: FloatArray,
+    scratch: FloatArray,
+    design: FloatArray,
+    out: FloatArray,
+    fit: FloatArray,
+) -> None:
+    """The passes of one contour fit, resumable for a window (see kernels.fit_passes)."""
+    k, kept = int(state[ST_PASSES]), int(state[ST_KEPT])
+    state[ST_NEED_WINDOW] = 0
+    while k < max_passes:
+        b = 0 if kept < 0 else 1 - kept
+        src = pts_in if k == 0 else new_pts[kept]
+        xmin, ymin, xmax, ymax = normals_and_box(src, normals[b])
+        x0 = max(math.floor(xmin) - margin, 0)
+        y0 = max(math.floor(ymin) - margin, 0)
+        x1 = min(math.ceil(xmax) + margin + 1, width)
+        y1 = min(math.ceil(ymax) + margin + 1, height)
+        has_window = x1 - x0 >= 4 and y1 - y0 >= 4
+        if has_window and (x0 < win[0] or y0 < win[1] or x1 > win[2] or y1 > win[3]):
+            state[ST_NEED_WINDOW] = 1
+            state[ST_BOX : ST_BOX + 4] = (x0, y0, x1, y1)
+            state[ST_PASSES], state[ST_KEPT] = k, kept
+            return
+        if has_window:
+            sample_normals(gx, gy, float(win[0]), float(win[1]), src, normals[b], s, bx[b], by[b])
+        state[ST_HAS_WINDOW + b] = 1 if has_window else 0
+        fit_pass(
+            bx[b], by[b], has_window, src, normals[b], polarity, s, motion, relax, cfg, width,
+            height, new_pts[b], peaks[b], mag, scratch[b], design, out[b],
+        )  # fmt: skip
+        k += 1
+        found = out[b, OUT_STATUS] == 0 and out[b, OUT_OK] != 0
+        if kept >= 0 and not found:
+            state[ST_FAILED] = 1  # the refinement failed: the pass before it is kept
+            break
+        kept = b
+        if not found:
+            break
+        moved = math.hypot(out[b, OUT_CX] - out[b, OUT_CX_IN], out[b, OUT_CY] - out[b, OUT_CY_IN])
+        if moved + abs(out[b, OUT_R] - out[b, OUT_R_IN]) <= refine_px:
+            break
+    state[ST_PASSES], state[ST_KEPT] = k, kept
+    _fit_results(pts_in, new_pts[kept], out[kept, OUT_STATUS] == 0, fit)
+
+
+def polarity(gray: npt.NDArray[np.uint8], pts: FloatArray, normals: FloatArray, d: float) -> float:
+    """+1 when brighter ``d`` px inside than outside (median over normals; kernels.polarity)."""
+    h, w = gray.shape
+    both = np.concatenate((pts - d * normals, pts + d * normals)).astype(np.float32)
+    finite = (np.abs(both) < _HUGE).all(axis=1)
+    both[~finite] = 0.0
+    fx, fy = np.floor(both[:, 0]), np.floor(both[:, 1])
+    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
+    a, b = (both[:, 0] - fx).astype(np.float64), (both[:, 1] - fy).astype(np.float64)
+    x0, x1 = np.clip(ix, 0, w - 1), np.clip(ix + 1, 0, w - 1)
+    y0, y1 = np.clip(iy, 0, h - 1), np.clip(iy + 1, 0, h - 1)
+    g = gray.astype(np.float32)
+    top = (a * (g[y0, x1] - g[y0, x0]).astype(np.float64) + g[y0, x0]).astype(np.float32)
+    bot = (a * (g[y1, x1] - g[y1, x0]).astype(np.float64) + g[y1, x0]).astype(np.float32)
+    val = (b * (bot - top).astype(np.float64) + top).astype(np.float32)
+    val[~finite] = 0.0
+    n = len(pts)
+    diff = val[:n].astype(np.float64) - val[n:].astype(np.float64)
+    return 1.0 if float(np.median(diff)) >= 0 else -1.0
+
+
+def resample(points: FloatArray, out: FloatArray) -> None:
+    """``len(out)`` points uniformly spaced in arc length along the closed polygon ``points``."""
+    _resample(points, out)
 
 
 def fit_pass(  # noqa: PLR0917 - the compiled kernels' positional signature
@@ -372,3 +496,20 @@ def _resample(points: FloatArray, out: FloatArray) -> None:
     s = np.arange(n) * (total / n)
     out[:, 0] = np.interp(s, cum, closed[:, 0])
     out[:, 1] = np.interp(s, cum, closed[:, 1])
+
+
+def _pixels(g: F32Array, ix: npt.NDArray[np.int64], iy: npt.NDArray[np.int64]) -> F32Array:
+    """``g[iy, ix]``, 0 where outside ``g``."""
+    h, w = g.shape
+    inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+    return np.where(inside, g[np.clip(iy, 0, h - 1), np.clip(ix, 0, w - 1)], np.float32(0.0))
+
+
+def _fit_results(pts_in: FloatArray, kept: FloatArray, found: bool, fit: FloatArray) -> None:
+    """fit_passes' float results (see kernels._fit_results)."""
+    fit[FIT_CX_IN : FIT_CY_IN + 1] = np.add.reduce(pts_in, axis=0) / len(pts_in)
+    if found:
+        fit[FIT_XMIN], fit[FIT_YMIN] = kept.min(axis=0)
+        fit[FIT_XMAX], fit[FIT_YMAX] = kept.max(axis=0)
+    else:
+        fit[FIT_XMIN : FIT_YMAX + 1] = np.nan
