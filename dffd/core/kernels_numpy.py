@@ -2,7 +2,8 @@
 
 Same names, signatures, arrays and results (to rounding: the tests compare both on the same
 inputs) as :mod:`dffd.core.kernels`, written with vectorised NumPy instead of loops: importing
-this module compiles nothing. They cost a few hundred µs a pass more than the compiled kernels
+this module compiles nothing (the bilinear samples are OpenCV's remap, which the compiled
+kernel reproduces). They cost a few hundred µs a pass more than the compiled kernels
 (NumPy's per-call overhead on 64-element arrays; docs/performance.md has the figures), which is
 why they only bridge the start: :mod:`dffd.core.kernel_dispatch` swaps the compiled kernels in
 as soon as they are ready.
@@ -13,6 +14,7 @@ from __future__ import annotations
 import math
 from typing import cast
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -109,26 +111,21 @@ def sample_normals(  # noqa: PLR0917 - the compiled kernels' positional signatur
     bx: F32Array,
     by: F32Array,
 ) -> None:
-    """Bilinear samples of the gradient window along every normal (see kernels.sample_normals).
-
-    The fused multiply-adds in float64 (exact: the products have 48 bits), rounded once to
-    float32: the compiled kernel's (and OpenCV's) values on a CPU with FMA instructions.
-    """
+    """Bilinear samples of the gradient window along every normal (see kernels.sample_normals):
+    ``cv2.remap`` itself, whose values the compiled kernel reproduces."""
     steps = np.arange(-s, s + 1, dtype=np.float64)[None, :]
-    mx = (pts[:, 0:1] + steps * normals[:, 0:1] - x0).astype(np.float32)
-    my = (pts[:, 1:2] + steps * normals[:, 1:2] - y0).astype(np.float32)
-    finite = (np.abs(mx) < _HUGE) & (np.abs(my) < _HUGE)
-    mx = np.where(finite, mx, np.float32(-2.0))  # a point outside the window: samples 0
-    my = np.where(finite, my, np.float32(-2.0))
-    fx, fy = np.floor(mx), np.floor(my)
-    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
-    a, b = (mx - fx).astype(np.float64), (my - fy).astype(np.float64)
-    for g, dst in ((gx, bx), (gy, by)):
-        p00, p01 = _pixels(g, ix, iy), _pixels(g, ix + 1, iy)
-        p10, p11 = _pixels(g, ix, iy + 1), _pixels(g, ix + 1, iy + 1)
-        top = (a * (p01 - p00).astype(np.float64) + p00).astype(np.float32)
-        bot = (a * (p11 - p10).astype(np.float64) + p10).astype(np.float32)
-        dst[:] = (b * (bot - top).astype(np.float64) + top).astype(np.float32)
+    mapx = (pts[:, 0:1] + steps * normals[:, 0:1] - x0).astype(np.float32)
+    mapy = (pts[:, 1:2] + steps * normals[:, 1:2] - y0).astype(np.float32)
+    finite = (np.abs(mapx) < _HUGE) & (np.abs(mapy) < _HUGE)
+    if not finite.all():  # NaN or far outside: a point outside the window, samples 0
+        mapx[~finite] = -2.0
+        mapy[~finite] = -2.0
+    if gx.size == 0:
+        bx[:] = 0.0
+        by[:] = 0.0
+        return
+    bx[:] = cv2.remap(gx, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    by[:] = cv2.remap(gy, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
 def fit_passes(  # noqa: PLR0917 - the compiled kernels' positional signature
@@ -500,13 +497,6 @@ def _resample(points: FloatArray, out: FloatArray) -> None:
     s = np.arange(n) * (total / n)
     out[:, 0] = np.interp(s, cum, closed[:, 0])
     out[:, 1] = np.interp(s, cum, closed[:, 1])
-
-
-def _pixels(g: F32Array, ix: npt.NDArray[np.int64], iy: npt.NDArray[np.int64]) -> F32Array:
-    """``g[iy, ix]``, 0 where outside ``g``."""
-    h, w = g.shape
-    inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
-    return np.where(inside, g[np.clip(iy, 0, h - 1), np.clip(ix, 0, w - 1)], np.float32(0.0))
 
 
 def _fit_results(pts_in: FloatArray, kept: FloatArray, found: bool, fit: FloatArray) -> None:
