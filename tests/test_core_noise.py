@@ -290,10 +290,10 @@ def _static_bank_run(
 
 def test_published_sigma_is_honest_on_gaussian_bursts_of_unknown_scale() -> None:
     """The online estimates (λ from the size invariant, the process noise from its variogram,
-    re-weighting the whole history, ι) make the published σ honest on Gaussian burst errors
-    twice the stated σ: 2σ covers 93-97 % of the LPV's errors over many independent runs, and
-    the KF's at most 98.5 % (its σ carries a little of the one-sided ι and of q̂'s positive
-    estimation noise, which its short memory feels more; docs/estimation.md §17)."""
+    re-weighting the whole history, the two-sided ι) make the published σ honest on Gaussian
+    burst errors twice the stated σ: 2σ covers 93-97 % of the LPV's errors over many independent
+    runs, and the KF's at most 98.5 % (its σ carries q̂'s positive estimation noise — clipped
+    at 0 — which its short memory feels more; docs/estimation.md §17)."""
     rng = np.random.default_rng(17)
     rows = [r for _ in range(120) for r in _static_bank_run(rng, 100, 0.02, 0.01)]
     a = np.array(rows)
@@ -339,3 +339,20 @@ def test_process_noise_weights_reweight_the_whole_history() -> None:
     split.weights = (wz, wb)
     np.testing.assert_allclose(split.total(), whole, rtol=1e-9, atol=1e-15)
     assert split.var_z == pytest.approx(whole[0, 0], rel=1e-9)
+
+
+def test_slow_error_factor_is_corrected_for_its_own_noise() -> None:
+    """On white errors (true ι = 1) over the 60-burst window the estimate is unbiased, and the
+    mean of 1/ι̂ — ι scales a variance, so 1/ι̂ is what a NEES sees — is within 1.2 (without the
+    correction for the Bartlett estimate's bias and noise: E[ι̂] 0.84, E[1/ι̂] 1.47)."""
+    rng = np.random.default_rng(23)
+    cfg = NoiseAdaptConfig(slow_error_min=0.01, slow_error_max=100.0)
+    factors = []
+    for _ in range(400):
+        est = SlowErrors(cfg)
+        for _ in range(60):
+            est.update(math.log(0.04) + rng.normal(0.0, 0.003), 0.003, 0.0)
+        factors.append(est.factor)
+    f = np.array(factors)
+    assert float(np.mean(f)) == pytest.approx(1.0, abs=0.1)
+    assert float(np.mean(1.0 / f)) < 1.2
