@@ -16,6 +16,7 @@ import argparse
 import asyncio
 import json
 import os
+import shutil
 import statistics
 import sys
 import tempfile
@@ -116,6 +117,10 @@ def measure_start(*, fresh_kernel_cache: bool = False) -> dict[str, Any]:
             run["error"] = f"{type(exc).__name__}: {exc} (see {work / 'daemon.log'})"
         finally:
             stop_process(daemon)
+    if run["error"] is None:
+        # the daemon's log and caches are only worth keeping when the start failed (the error
+        # names the log); a good start's would pile up in /tmp, one directory a start
+        shutil.rmtree(work, ignore_errors=True)
     return run
 
 

@@ -183,3 +183,20 @@ def test_only_core_keeps_the_core_figures_named_for_the_service_trackers() -> No
     assert all("mmae" in f["name"] for f in figures if f["key"] != "core_vs_naive")
     with pytest.raises(ValueError, match="unknown bench part"):
         run_bench(Path("unused"), only=["cores"])
+
+
+def test_a_timed_start_reaches_a_first_depth_and_leaves_nothing_in_tmp(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import tempfile
+
+    from hil.bench_start import measure_start
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    run = measure_start()
+    assert run["error"] is None
+    assert run["first_estimate_s"] is not None
+    assert run["first_depth_s"] is not None
+    assert run["first_depth_s"] >= run["first_estimate_s"]
+    # a good start's daemon log and work directory are removed; a failed one's are kept
+    assert list(tmp_path.glob("hil-start-*")) == []
