@@ -230,6 +230,11 @@ class TableFit:
     # the points the model was fitted to: the settled brackets' ends (two a depth), or the
     # depth points themselves (empty: ``points``)
     fit_points: tuple[DepthPoint, ...] = ()
+    # the refit passes' v axis: "polynomial" (the model's polynomial), or "whole model"
+    # (polynomial and spline) when the polynomial axis missed its own bracket ends by more than
+    # AXIS_MISFIT_SIGMA (a cam ripple); and that misfit (rms, in the ends' σ; NaN: no refit)
+    axis: str = "polynomial"
+    axis_misfit_sigma: float = math.nan
 
     @property
     def model_points(self) -> tuple[DepthPoint, ...]:
@@ -427,7 +432,10 @@ def fit_table(
     # points by many of their σ. Only then the passes go on with the whole model (polynomial and
     # spline) as the axis; through the spline a model that needs none feeds the readings'
     # scatter back (reference optics: misfit 0.4-0.8 σ rms, polynomial axis kept).
-    if _misfit_sigma(model, fit_points) > AXIS_MISFIT_SIGMA:
+    misfit = _misfit_sigma(model, fit_points)
+    axis = "polynomial"
+    if misfit > AXIS_MISFIT_SIGMA:
+        axis = "whole model"
         model, refit, fit_points = _settle(
             groups, model, points, span, per_px * window_blur_px, spline_axis=True
         )
@@ -438,7 +446,7 @@ def fit_table(
         f_number=f_number, zoom_counts=rig.zoom_counts,
         table_sigma_v_mm=model.table_sigma_v_um / 1000.0,
     )  # fmt: skip
-    return TableFit(tuple(refit), model, lens, tuple(fit_points))
+    return TableFit(tuple(refit), model, lens, tuple(fit_points), axis, misfit)
 
 
 def lens_from_points(

@@ -101,6 +101,12 @@ def calibrated_lens(
                 {p.placed_m for p, ok in zip(table.model_points, fit.used, strict=True) if not ok}
             ),
             "spline_lambda": None if math.isnan(fit.model.spline_lam) else fit.model.spline_lam,
+            # the refit passes' v axis (the polynomial, or the whole model after the switch)
+            # and the polynomial axis's misfit to its own bracket ends that chose it (σ rms)
+            "axis": table.axis,
+            "axis_misfit_sigma": None
+            if math.isnan(table.axis_misfit_sigma)
+            else round(table.axis_misfit_sigma, 2),
             # how each depth's sweep was read (closed loop, pinned at the focus range's end, …)
             "vertex_rules": {f"{p.z_m:g}": p.rule for p in table.points},
         },

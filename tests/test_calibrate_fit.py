@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
+from dffd import calibrate_fit
 from dffd.calibrate_check import SWEEPS_DISAGREE_CHI2, check_table
-from dffd.calibrate_fit import DepthPoint, TableFit, fit_table, fit_vertex
+from dffd.calibrate_fit import AXIS_MISFIT_SIGMA, DepthPoint, TableFit, fit_table, fit_vertex
 from dffd.core.focus import fit_burst, plan_burst
 from dffd.core.lens import MM_PER_M, Lens
 from dffd.resources import lens_table
@@ -37,18 +40,22 @@ def _cost(v: np.ndarray, v0: float, skew: float = 0.0) -> np.ndarray:
 
 
 def _point(
-    z_m: float, rng: np.random.Generator, off_um: float = 0.0, skew: float = 0.0
+    z_m: float,
+    rng: np.random.Generator,
+    off_um: float = 0.0,
+    skew: float = 0.0,
+    truth: Lens = TRUTH,
 ) -> DepthPoint:
     """A fine sweep as ``sharpest`` takes it: 41 settings over ± 7 coarse steps around the true
     focus, a cost parabolic in v (doubling at 3 px of blur; ``skew``: see _cost) with relative
     noise; its vertex in counts. ``off_um``: the sweep disturbed, its cost's minimum that far
-    off in v."""
+    off in v; ``truth``: the lens swept."""
     lo, hi = _Optics.focus_range
-    v0 = TRUTH.v_from_depth(z_m)
+    v0 = truth.v_from_depth(z_m)
     step = (hi - lo) / 32
-    best = TRUTH.counts_for_depth(z_m)
+    best = truth.counts_for_depth(z_m)
     counts = np.linspace(max(lo, best - 7 * step), min(hi, best + 7 * step), 41)
-    v = TRUTH.v_from_counts_array(counts)
+    v = truth.v_from_counts_array(counts)
     cost = _cost(v - off_um * 1e-3, v0, skew) * (
         1.0 + COST_NOISE * rng.standard_normal(len(counts))
     )
@@ -159,6 +166,53 @@ def test_the_table_sigma_covers_its_error() -> None:
     assert max(abs(r) for r in ratios) < 4.0
 
 
-def _table_err_um(table: TableFit, z_m: float) -> float:
-    c = TRUTH.counts_for_depth(z_m)
-    return float((table.lens.v_from_counts(c) - TRUTH.v_from_counts(c)) * 1e3)
+def _rippled(amplitude: float, cycles: int = 2) -> Lens:
+    """TRUTH's focus cam with a ripple: focus power P = 1/f − 1/v plus ``amplitude`` × the
+    range's power × sin(2π ``cycles`` u)/(2π ``cycles``) of the normalised counts u (the form of
+    the simulator's aberrated cam, drivers/sim/optics_aberrated.py; monotone for amplitude < 1)."""
+    f = TRUTH.focal_length_mm
+    lo, hi = _Optics.focus_range
+    counts = np.arange(lo, hi + 1, 64, dtype=np.float64)
+    power = 1.0 / f - 1.0 / TRUTH.v_from_counts_array(counts)  # 1/mm
+    u = (counts - lo) / (hi - lo)
+    k = 2.0 * np.pi * cycles
+    span = float(np.ptp(power))
+    v = 1.0 / (1.0 / f - (power + amplitude * span * np.sin(k * u) / k))
+    return Lens(
+        "rippled", f, TRUTH.pixel_pitch_mm, tuple(int(c) for c in counts),
+        tuple(float(x) for x in v),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("noise_seed", range(3))
+def test_the_axis_switches_to_the_whole_model_on_a_rippled_cam_only(noise_seed: int) -> None:
+    """The refit passes read the sweeps through the model's polynomial unless the fit then
+    misses its own bracket ends by more than AXIS_MISFIT_SIGMA of their σ (rms). On a smooth
+    lens the misfit stays well below that (polynomial axis); on a cam with a ripple the
+    polynomial cannot follow (the simulator's aberrated cam: 14-15 σ), the passes switch to the
+    whole model — and the switched table follows the ripple better than the polynomial axis
+    would have (the reason for the switch)."""
+    rng = np.random.default_rng(200 + noise_seed)
+    smooth = fit_table("smooth", _Optics(), [_point(z, rng) for z in DEPTHS_M], F_NUMBER)
+    assert smooth.axis == "polynomial"
+    assert smooth.axis_misfit_sigma < AXIS_MISFIT_SIGMA
+
+    rippled = _rippled(0.12)
+    points = [_point(z, rng, truth=rippled) for z in DEPTHS_M]
+    table = fit_table("rippled", _Optics(), points, F_NUMBER)
+    assert table.axis == "whole model"
+    assert table.axis_misfit_sigma > 1.5 * AXIS_MISFIT_SIGMA
+    assert table.fit is not None
+    assert table.fit.model.spline is not None
+    errs = [_table_err_um(table, float(z), rippled) for z in np.geomspace(1.5, 12.0, 25)]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(calibrate_fit, "AXIS_MISFIT_SIGMA", math.inf)  # never switch
+        kept = fit_table("rippled", _Optics(), points, F_NUMBER)
+    assert kept.axis == "polynomial"
+    errs_kept = [_table_err_um(kept, float(z), rippled) for z in np.geomspace(1.5, 12.0, 25)]
+    assert np.sqrt(np.mean(np.square(errs))) < np.sqrt(np.mean(np.square(errs_kept)))
+
+
+def _table_err_um(table: TableFit, z_m: float, truth: Lens = TRUTH) -> float:
+    c = truth.counts_for_depth(z_m)
+    return float((table.lens.v_from_counts(c) - truth.v_from_counts(c)) * 1e3)

@@ -352,6 +352,8 @@ def test_bench_scores_on_a_table_dffd_calibrate_fitted(tmp_path: Path) -> None:
     assert table["depths_m"] == [1.5, 2.5, 4.0, 7.0, 13.0]
     assert table["fit"]["residual_v_rms_um"] < 2.0
     assert table["fit"]["rejected_depths_m"] == []
+    assert table["fit"]["axis"] == "polynomial"  # the reference cam: no switch (§16)
+    assert 0 <= table["fit"]["axis_misfit_sigma"] < 3.0
     assert calib["depth_err_rms_m_max"] == table["depth_err_rms_m"]
     lens = Lens.from_toml(Path(table["table"]))
     assert lens.name == "calibrated-reference-s5"
