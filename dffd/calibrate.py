@@ -90,8 +90,15 @@ _LOGGER = logging.getLogger(__name__)
 
 
 # Default depths (m): about even in v (the focus cam's curvature) and denser at long range, where
-# one micrometre of v is ~0.1 m of depth and the table must be measured, not interpolated.
-DEFAULT_DEPTHS_M = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.5, 5.5, 7.0, 8.5, 10.0, 12.0, 14.0, 17.0, 20.0)
+# one micrometre of v is ~0.1 m of depth and the table must be measured, not interpolated. Every
+# 0.25-0.75 m over 2-10 m (23 depths, was 15): the 7-10 m brackets' far ends measure the table
+# near infinity, where the estimator reads a far target, so more of them average its noise. Chosen
+# on the reference optics (tables 4.8/4.1/2.6 -> 2.6/1.9/1.2 mm rms, docs/estimation.md §18);
+# about 8 more minutes at the lab's ~1 minute a depth.
+DEFAULT_DEPTHS_M = (
+    1.0, 1.5, 2.0, 2.25, 2.5, 2.75, 3.0, 3.25, 3.5, 4.0, 4.5, 5.0, 5.5, 6.25, 7.0, 7.75, 8.5,
+    9.25, 10.0, 12.0, 14.0, 17.0, 20.0,
+)  # fmt: skip
 # The contour must fit the tracker's radius range with room to spare: at most this fraction of
 # TrackerConfig.max_radius_px (its normals search ±search_px beyond the edge, and a target that
 # nearly fills the frame leaves the background too little area for the threshold), at least

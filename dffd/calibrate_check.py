@@ -39,7 +39,7 @@ FloatArray = npt.NDArray[np.float64]
 # A depth whose leave-one-out residual exceeds this many σ is swept again. Chosen on the
 # reference optics (paper-circle's camera, seeds 1-3, peak_gradient): once the refit's axis no
 # longer follows the first pass's scatter the z-scores there stay within ±2.5 (docs/estimation.md
-# §10); 3 leaves room for the tails of 15 depths and still catches a sweep 1 µm of v off.
+# §10); 3 leaves room for the tails of 15-23 depths and still catches a sweep 1 µm of v off.
 REPEAT_SIGMA = 3.0
 MAX_SWEEPS = 3  # sweeps of one depth at most (the first and two repeats)
 # Repeated sweeps of one depth disagree when their χ² per degree of freedom exceeds this: more
