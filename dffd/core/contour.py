@@ -217,10 +217,11 @@ class ContourTracker:
         self._velocity = np.zeros(2)
         self._t = t
         self._bad_frames = 0
-        self._polarity = self._estimate_polarity(gray, pts)
+        self._polarity, box = self._estimate_polarity(gray, pts)
         grad = _GradientCache(gray, self.config.presmooth_sigma_px)
-        # every pass must find the target: no early stop (refine_px −∞), a failed one fails
-        fit = self._fit(grad, pts, None, "affine", START_RELAX, START_PASSES, -math.inf)
+        # every pass must find the target: no early stop (refine_px −∞), a failed one fails;
+        # the first pass's window is computed ahead from the box (no return for it)
+        fit = self._fit(grad, pts, box, "affine", START_RELAX, START_PASSES, -math.inf)
         if not fit.obs.ok or fit.failed:
             self.reset()
             return False
@@ -376,14 +377,15 @@ class ContourTracker:
             ws = self._ws = layout.Workspace(n, 2 * self.config.search_px + 1)
         return ws
 
-    def _estimate_polarity(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> float:
+    def _estimate_polarity(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> tuple[float, Box]:
         """+1 when the inside is brighter 3 px either side of the boundary (median over normals;
-        one kernel call: ~40 -> ~5 us at acquisition)."""
+        one kernel call: ~40 -> ~5 us at acquisition), and the box of ``pts``."""
         img = gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
         normals = self._workspace(len(pts)).normals[0]
         kernels = kernel_dispatch.current()
-        kernels.normals_and_box(pts, normals)
-        return kernels.polarity(np.ascontiguousarray(img), pts, normals, POLARITY_DEPTH_PX)
+        box = kernels.normals_and_box(pts, normals)
+        pol = kernels.polarity(np.ascontiguousarray(img), pts, normals, POLARITY_DEPTH_PX)
+        return pol, box
 
 
 # -- acquisition ----------------------------------------------------------------------------
@@ -430,16 +432,22 @@ def find_target(
     _, binary = cv2.threshold(patch, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     centre = np.array([rw / 2.0, rh / 2.0])
     best: tuple[float, npt.NDArray[np.int32]] | None = None
+    min_area = math.pi * min_radius_px**2
+    # A chain of n pixels (steps of at most √2) encloses at most (n√2)²/(4π) = n²/(2π) px²
+    # (isoperimetric): shorter chains cannot reach min_area and are skipped uncomputed.
+    min_points_sq = 2.0 * math.pi * min_area
     for mask in (binary, cv2.bitwise_not(binary)):
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         for raw in contours:
-            cnt = np.asarray(raw, dtype=np.int32)
-            area = float(cv2.contourArea(cnt))
-            if area < math.pi * min_radius_px**2 or area > 0.8 * rw * rh:
+            if len(raw) ** 2 < min_points_sq:
                 continue
+            cnt = np.asarray(raw, dtype=np.int32)
             bx, by, bw, bh = cv2.boundingRect(cnt)
             if bx <= 0 or by <= 0 or bx + bw >= rw or by + bh >= rh:
                 continue  # touches the region border: background or a cut-off object
+            area = float(cv2.contourArea(cnt))
+            if area < min_area or area > 0.8 * rw * rh:
+                continue
             perimeter = float(cv2.arcLength(cnt, closed=True))
             circularity = 4 * math.pi * area / max(perimeter**2, 1e-9)
             m = cnt.reshape(-1, 2).mean(axis=0)
@@ -465,9 +473,10 @@ def gradient(
     img = np.asarray(gray, dtype=np.float32)
     if presmooth_sigma_px > 0:
         img = np.asarray(cv2.GaussianBlur(img, (0, 0), presmooth_sigma_px), dtype=np.float32)
-    # Sobel 3x3 sums 8x the per-pixel derivative
-    gx = np.asarray(cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), dtype=np.float32)
-    gy = np.asarray(cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), dtype=np.float32)
+    # Sobel 3x3 sums 8x the per-pixel derivative; both in one pass (cv2.Sobel's values)
+    gx = np.empty_like(img)
+    gy = np.empty_like(img)
+    kernel_dispatch.current().sobel_pair(img, gx, gy)
     return gx, gy
 
 

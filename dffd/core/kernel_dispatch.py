@@ -43,6 +43,9 @@ class KernelSet(Protocol):
     def resample(self, points: FloatArray, out: FloatArray, /) -> None:
         """Points uniformly spaced in arc length along a closed polygon, into ``out``."""
 
+    def sobel_pair(self, b: F32Array, gx: F32Array, gy: F32Array, /) -> None:
+        """OpenCV's 3x3 Sobel of ``b`` (scale 1/8) along x into ``gx``, along y into ``gy``."""
+
     def sample_normals(  # noqa: PLR0917 - the kernels' positional signature
         self,
         gx: F32Array,

@@ -55,7 +55,10 @@ from dffd.core.kernel_layout import S_W as _S_W
 from dffd.core.kernel_layout import S_WIDTH2 as _S_WIDTH2
 from dffd.core.kernel_layout import S_WNEW as _S_WNEW
 from dffd.core.kernel_layout import TINY as _TINY
-from dffd.core.kernels_edges import edge_moments  # the focus measure's kernel, dispatched too
+from dffd.core.kernels_edges import (  # the focus measure's and the gradient's, dispatched too
+    edge_moments,
+    sobel_pair,
+)
 from dffd.core.kernels_track import (  # the 3D tracker's kernels, dispatched with these
     track_combine,
     track_predict,
@@ -73,6 +76,7 @@ __all__ = [
     "polarity",
     "resample",
     "sample_normals",
+    "sobel_pair",
     "track_combine",
     "track_predict",
     "track_size_update",

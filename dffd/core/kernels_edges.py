@@ -1,7 +1,8 @@
-"""Compiled kernel of the focus measure's edge second moments (numba, ``nogil``).
+"""Compiled kernels of the edges: the focus measure's second moments, the gradient's Sobel pair.
 
-Split from :mod:`dffd.core.kernels` (which re-exports it with the tracker's pass kernels); its
-NumPy twin is :func:`dffd.core.kernels_numpy.edge_moments`.
+Split from :mod:`dffd.core.kernels` (which re-exports them with the tracker's pass kernels); their
+NumPy twins are :func:`dffd.core.kernels_numpy.edge_moments` and
+:func:`dffd.core.kernels_numpy.sobel_pair`.
 """
 
 from __future__ import annotations
@@ -13,12 +14,54 @@ import numpy.typing as npt
 
 from dffd.core.kernel_jit import jit as _jit
 
-__all__ = ["edge_moments"]
+__all__ = ["edge_moments", "sobel_pair"]
 
 FloatArray = npt.NDArray[np.float64]
 
 # numba types of the kernel's arrays (all C-contiguous)
 _M, _M32, _V = "float64[:, ::1]", "float32[:, ::1]", "float64[::1]"
+# Sobel 3x3's smoothing taps with the gradient's scale (1/8) folded in: powers of two, so every
+# product is exact and only the order of the sums decides the rounding
+_EIGHTH = np.float32(0.125)
+_QUARTER = np.float32(0.25)
+
+
+@_jit(f"void({_M32}, {_M32}, {_M32})")
+def sobel_pair(
+    b: npt.NDArray[np.float32], gx: npt.NDArray[np.float32], gy: npt.NDArray[np.float32]
+) -> None:
+    """``cv2.Sobel(b, CV_32F, 1, 0, ksize=3, scale=0.125)`` into ``gx`` and ``(0, 1)`` into
+    ``gy``, bit for bit, in one pass over ``b`` (OpenCV's two calls read it twice).
+
+    OpenCV filters a row with ``[-1, 0, 1]`` as one subtraction and with ``[1/8, 1/4, 1/8]`` as
+    ``(p[-1] + p[1]) / 8 + p[0] / 4``, then the columns the same way (the scale goes to the
+    smoothing taps); the border is reflected without repeating the edge (BORDER_REFLECT_101).
+    """
+    h, w = b.shape
+    for y in range(h):
+        ym = y - 1 if y > 0 else min(1, h - 1)
+        yp = y + 1 if y < h - 1 else max(h - 2, 0)
+        top = b[ym]
+        mid = b[y]
+        bot = b[yp]
+        ox = gx[y]
+        oy = gy[y]
+        for x in range(1, w - 1):  # the interior: no branch, vectorised
+            ox[x] = ((top[x + 1] - top[x - 1]) + (bot[x + 1] - bot[x - 1])) * _EIGHTH + (
+                mid[x + 1] - mid[x - 1]
+            ) * _QUARTER
+            st = (top[x - 1] + top[x + 1]) * _EIGHTH + top[x] * _QUARTER
+            sb = (bot[x - 1] + bot[x + 1]) * _EIGHTH + bot[x] * _QUARTER
+            oy[x] = sb - st
+        for x in (0, w - 1):  # the first and last columns, reflected
+            xm = x - 1 if x > 0 else min(1, w - 1)
+            xp = x + 1 if x < w - 1 else max(w - 2, 0)
+            ox[x] = ((top[xp] - top[xm]) + (bot[xp] - bot[xm])) * _EIGHTH + (
+                mid[xp] - mid[xm]
+            ) * _QUARTER
+            st = (top[xm] + top[xp]) * _EIGHTH + top[x] * _QUARTER
+            sb = (bot[xm] + bot[xp]) * _EIGHTH + bot[x] * _QUARTER
+            oy[x] = sb - st
 
 
 @_jit(

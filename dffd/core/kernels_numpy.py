@@ -70,6 +70,7 @@ __all__ = [
     "polarity",
     "resample",
     "sample_normals",
+    "sobel_pair",
     "track_combine",
     "track_predict",
     "track_size_update",
@@ -98,6 +99,12 @@ def normals_and_box(pts: FloatArray, normals: FloatArray) -> tuple[float, float,
     lo = pts.min(axis=0)
     hi = pts.max(axis=0)
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def sobel_pair(b: F32Array, gx: F32Array, gy: F32Array) -> None:
+    """OpenCV's 3x3 Sobel of ``b`` (scale 1/8) along x into ``gx`` and along y into ``gy``."""
+    cv2.Sobel(b, cv2.CV_32F, 1, 0, dst=gx, ksize=3, scale=0.125)
+    cv2.Sobel(b, cv2.CV_32F, 0, 1, dst=gy, ksize=3, scale=0.125)
 
 
 def sample_normals(  # noqa: PLR0917 - the compiled kernels' positional signature
