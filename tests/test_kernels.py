@@ -6,14 +6,15 @@ import numba
 import pytest
 
 from dffd import warmup
-from dffd.core import kernels, kernels_track
+from dffd.core import kernels, kernels_acquire, kernels_track
 
 
 def _n_kernels() -> int:
-    # kernels re-exports the 3D tracker's kernels; their private helpers live in kernels_track
+    # kernels re-exports the 3D tracker's and the acquisition's kernels; their private helpers
+    # live in their own modules
     dispatchers = {
         id(v)
-        for module in (kernels, kernels_track)
+        for module in (kernels, kernels_acquire, kernels_track)
         for v in vars(module).values()
         if isinstance(v, numba.core.dispatcher.Dispatcher)
     }

@@ -64,6 +64,9 @@ class _Recorder:
     def sobel_pair(self, *args: Any) -> None:
         self._call("sobel_pair", args)
 
+    def acquire_mask(self, *args: Any) -> Any:
+        return self._call("acquire_mask", args)
+
 
 def test_every_kernel_call_of_a_tracked_sequence_gives_the_same_outputs() -> None:
     recorder = _Recorder()
@@ -73,13 +76,14 @@ def test_every_kernel_call_of_a_tracked_sequence_gives_the_same_outputs() -> Non
     names = {name for name, _ in recorder.calls}
     assert names == {
         "normals_and_box", "fit_passes", "edge_moments", "resample", "polarity", "sobel_pair",
+        "acquire_mask",
     }  # fmt: skip
     lost = resumed = 0
     for name, args in recorder.calls:
         fast, twin = _copy(args), _copy(args)
         got_fast = getattr(kernels, name)(*fast)
         got_twin = getattr(kernels_numpy, name)(*twin)
-        if name in {"normals_and_box", "polarity"}:
+        if name in {"normals_and_box", "polarity", "acquire_mask"}:
             np.testing.assert_allclose(got_twin, got_fast, rtol=RTOL)
         if name == "fit_passes":  # the scratch arrays hold both kernels' temporaries
             state = fast[FIT_STATE]
@@ -128,6 +132,30 @@ def test_the_sobel_pair_gives_opencvs_values_bit_for_bit() -> None:
             impl.sobel_pair(b, gx, gy)
             assert np.array_equal(gx, want_x), (impl.__name__, h, w)
             assert np.array_equal(gy, want_y), (impl.__name__, h, w)
+
+
+def test_the_acquisition_mask_gives_opencvs_threshold_and_mask_bit_for_bit() -> None:
+    """acquire_mask (both implementations) against OpenCV's resize, 5×5 blur and Otsu threshold
+    on frames of a disc, noise and flat regions, whole (halved) and as regions (as is), of
+    3×3 up to a whole frame."""
+    rng = np.random.default_rng(8)
+    frames = [render_disc(W, H, (320.5, 240.2), 60.0, 2.0, rng=rng)]
+    frames.append((rng.random((H, W)) * 255).astype(np.uint8))
+    frames.append(np.full((H, W), 77, dtype=np.uint8))  # one level: Otsu's threshold is 0
+    cases = [(0, 0, W // 2, H // 2, 2), (31, 17, 101, 57, 2), (5, 9, 3, 3, 1)]
+    cases += [(int(rng.integers(0, 300)), int(rng.integers(0, 200)), 150, 93, 1)]
+    for gray in frames:
+        for x, y, w, h, scale in cases:
+            region = gray[y : y + h * scale, x : x + w * scale]
+            if scale > 1:
+                region = cv2.resize(region, (w, h), interpolation=cv2.INTER_AREA)
+            blurred = cv2.GaussianBlur(region, (5, 5), 1.0)
+            want_t, want = cv2.threshold(blurred, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+            for impl in (kernels, kernels_numpy):
+                out = np.full((h, w), 7, dtype=np.uint8)
+                got_t = impl.acquire_mask(gray, x, y, scale, out)
+                assert got_t == want_t, (impl.__name__, x, y, w, h, scale)
+                assert np.array_equal(out, want), (impl.__name__, x, y, w, h, scale)
 
 
 def test_a_background_warm_up_swaps_the_compiled_kernels_in() -> None:

@@ -43,6 +43,12 @@ class KernelSet(Protocol):
     def resample(self, points: FloatArray, out: FloatArray, /) -> None:
         """Points uniformly spaced in arc length along a closed polygon, into ``out``."""
 
+    def acquire_mask(
+        self, gray: npt.NDArray[np.uint8], x0: int, y0: int, downscale: int,
+        out: npt.NDArray[np.uint8], /,
+    ) -> float:  # fmt: skip
+        """Otsu's threshold of a smoothed (and downscaled) region; its mask into ``out``."""
+
     def sobel_pair(self, b: F32Array, gx: F32Array, gy: F32Array, /) -> None:
         """OpenCV's 3x3 Sobel of ``b`` (scale 1/8) along x into ``gx``, along y into ``gy``."""
 

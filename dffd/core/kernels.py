@@ -55,6 +55,7 @@ from dffd.core.kernel_layout import S_W as _S_W
 from dffd.core.kernel_layout import S_WIDTH2 as _S_WIDTH2
 from dffd.core.kernel_layout import S_WNEW as _S_WNEW
 from dffd.core.kernel_layout import TINY as _TINY
+from dffd.core.kernels_acquire import acquire_mask  # the acquisition's mask, dispatched too
 from dffd.core.kernels_edges import (  # the focus measure's and the gradient's, dispatched too
     edge_moments,
     sobel_pair,
@@ -68,6 +69,7 @@ from dffd.core.kernels_track import (  # the 3D tracker's kernels, dispatched wi
 
 __all__ = [
     "CacheReport",
+    "acquire_mask",
     "cache_report",
     "edge_moments",
     "fit_pass",

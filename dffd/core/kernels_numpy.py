@@ -63,6 +63,7 @@ from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatche
 )
 
 __all__ = [
+    "acquire_mask",
     "edge_moments",
     "fit_pass",
     "fit_passes",
@@ -99,6 +100,21 @@ def normals_and_box(pts: FloatArray, normals: FloatArray) -> tuple[float, float,
     lo = pts.min(axis=0)
     hi = pts.max(axis=0)
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def acquire_mask(
+    gray: npt.NDArray[np.uint8], x0: int, y0: int, downscale: int, out: npt.NDArray[np.uint8]
+) -> float:
+    """Otsu's threshold of the region at (x0, y0) of ``gray`` (``out``'s shape × ``downscale``,
+    area-averaged to ``out``'s shape) smoothed 5×5 (σ = 1); the mask into ``out``."""
+    h, w = out.shape
+    region = gray[y0 : y0 + h * downscale, x0 : x0 + w * downscale]
+    if downscale > 1:
+        region = np.asarray(cv2.resize(region, (w, h), interpolation=cv2.INTER_AREA), np.uint8)
+    patch = cv2.GaussianBlur(region, (5, 5), 1.0)
+    thresh, binary = cv2.threshold(patch, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    out[...] = binary
+    return float(thresh)
 
 
 def sobel_pair(b: F32Array, gx: F32Array, gy: F32Array) -> None:
