@@ -75,6 +75,25 @@ def test_the_coarse_whole_frame_search_finds_the_disc_and_the_start_refines_it(
     assert np.allclose(starts[0].mean(axis=0), starts[1].mean(axis=0), atol=0.05)
 
 
+@pytest.mark.parametrize(("roi", "scale"), [((250, 150, 141, 131), 1), (None, 2), (None, 3)])
+def test_the_compiled_search_mask_finds_the_polygon_opencv_finds(
+    roi: tuple[int, int, int, int] | None, scale: int
+) -> None:
+    """A contiguous gray frame at scale 1 or 2 takes the compiled mask (acquire_mask), a strided
+    view of the same pixels OpenCV's resize, blur and Otsu threshold: the same polygon."""
+    rng = np.random.default_rng(4)
+    img = render_disc(W, H, (317.6, 222.1), 35.0, 1.5, rng=rng)
+    strided = np.zeros((H, 2 * W), np.uint8)
+    strided[:, ::2] = img
+    view = strided[:, ::2]
+    assert not view.flags.c_contiguous
+    fast = find_target(img, roi, 6.0, downscale=scale)
+    slow = find_target(view, roi, 6.0, downscale=scale)
+    assert fast is not None
+    assert slow is not None
+    assert np.array_equal(fast, slow)
+
+
 @pytest.mark.parametrize("bgr", [False, True])
 def test_tracks_a_moving_growing_disc_with_subpixel_size(bgr: bool) -> None:
     rng = np.random.default_rng(1)
