@@ -47,6 +47,8 @@ class Lens:
     # (the core converts a few values on every frame).
     _v_at: _ScalarPchip = field(init=False, repr=False)
     _counts_at: _ScalarPchip = field(init=False, repr=False)
+    # (min, max) of focus_v_mm, computed once: v_range_mm runs several times a frame.
+    _v_range: tuple[float, float] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -59,6 +61,7 @@ class Lens:
         )
         object.__setattr__(self, "_v_at", _ScalarPchip(self._to_v))
         object.__setattr__(self, "_counts_at", _ScalarPchip(self._to_counts))
+        object.__setattr__(self, "_v_range", (min(self.focus_v_mm), max(self.focus_v_mm)))
 
     # -- construction -----------------------------------------------------------------------
     @classmethod
@@ -145,7 +148,7 @@ class Lens:
     @property
     def v_range_mm(self) -> tuple[float, float]:
         """(min, max) lens-to-sensor distance covered by the table."""
-        return min(self.focus_v_mm), max(self.focus_v_mm)
+        return self._v_range
 
     @property
     def depth_range_m(self) -> tuple[float, float]:
