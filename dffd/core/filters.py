@@ -57,6 +57,11 @@ def exp_input2_floats(m: Mat2, u0: Vec2, lam: float, dt: float) -> tuple[Mat2, V
     return _exp_input2(m, u0, lam, dt)
 
 
+def expm2_floats(a: Mat2) -> Mat2:
+    """:func:`expm2` on a row-major float tuple (memoised; for per-frame callers)."""
+    return _expm2(a)
+
+
 def cf2_gains(sigma_psi: float, sigma_beta: float, sigma_z: float) -> tuple[float, float]:
     """Lemma 1: CF2 gains equal to the stationary Kalman gains of model (11)."""
     k1 = math.sqrt(2.0 * sigma_beta / sigma_z + (sigma_psi / sigma_z) ** 2)
