@@ -132,23 +132,29 @@ class ErrorCovariance:
         n = self.n
         var_old = float(self.p[n, n])
         c = corr * math.sqrt(var_new / var_old) if var_old > 0 and corr > 0 else 0.0
-        t = np.eye(n + 1)
-        t[n, n] = c
-        p = t @ self.p @ t.T
-        p[n, n] += (1.0 - corr * corr) * var_new if c else var_new
-        self.p = p
+        # T P Tᵀ with T = diag(1, …, 1, c): the last row and column scaled by c, the corner by
+        # c² (on floats: the same products as the matrix form, whose other terms are zeros)
+        rows = self.p.tolist()
+        for i in range(n):
+            rows[i][n] = rows[i][n] * c
+            rows[n][i] = c * rows[n][i]
+        rows[n][n] = c * rows[n][n] * c + ((1.0 - corr * corr) * var_new if c else var_new)
+        self.p = np.array(rows)
 
     def kalman_update(self, k: FloatArray) -> None:
         """``e ← (I − K C) e − K ε`` (the held measurement just replaced)."""
         n = self.n
-        t = np.eye(n + 1)
-        t[:n, 0] -= k
-        t[:n, n] = -k
-        self.p = t @ self.p @ t.T
-        tn = t[:n, :n]
-        self.pz = (tn @ np.array(self.pz).reshape(n, n) @ tn.T).ravel().tolist()
+        # T P Tᵀ written out on floats (a few per burst; NumPy's per-call cost on 3×3 arrays was
+        # most of the time), T = I with T[:n, 0] −= k and T[:n, n] = −k
+        t = [[1.0 if i == j else 0.0 for j in range(n + 1)] for i in range(n + 1)]
+        for i, ki in enumerate(k.tolist()):
+            t[i][0] -= ki
+            t[i][n] = -ki
+        self.p = np.array(_congruence(t, self.p.tolist()))
+        tn = [row[:n] for row in t[:n]]
+        self.pz = _flat(_congruence(tn, _square(self.pz, n)))
         if self.pb is not None:
-            self.pb = (tn @ np.array(self.pb).reshape(n, n) @ tn.T).ravel().tolist()
+            self.pb = _flat(_congruence(tn, _square(self.pb, n)))
 
     def innovation_variance(self) -> float:
         """Variance of the innovation ``ν = y − ẑ = e_z + ε`` (``e = x − x̂``)."""
@@ -171,11 +177,9 @@ class ErrorCovariance:
     def copy_from(self, other: ErrorCovariance) -> None:
         """Take ``other``'s depth error and measurement block (a seeded filter; others zeroed)."""
         n, m = self.n, other.n
-        p = np.zeros((n + 1, n + 1))
-        idx_self = [0, n] if n == 1 else [0, 1, n]
-        idx_other = [0, m] if n == 1 else [0, 1, m]
-        p[np.ix_(idx_self, idx_self)] = other.p[np.ix_(idx_other, idx_other)]
-        self.p = p
+        idx = [0, m] if n == 1 else [0, 1, m]
+        rows = other.p.tolist()
+        self.p = np.array([[rows[i][j] for j in idx] for i in idx])
         self.pz = [other.pz[0]] if n == 1 else list(other.pz)
         if self.pb is not None:
             src = other.pb if other.pb is not None else [0.0] * (m * m)
@@ -403,3 +407,27 @@ def _sandwich2(phi: Mat2, p: list[float], q: Mat2) -> list[float]:
     e01 = b00 * p10 + b01 * p11 + q[1]
     e11 = b10 * p10 + b11 * p11 + q[3]
     return [e00, e01, e01, e11]
+
+
+def _congruence(t: list[list[float]], p: list[list[float]]) -> list[list[float]]:
+    """``T P Tᵀ`` of small square float matrices (rows), each sum in index order."""
+    size = len(t)
+    a = [[_sum_products(t[i], [p[k][j] for k in range(size)]) for j in range(size)]
+         for i in range(size)]  # fmt: skip
+    return [[_sum_products(a[i], t[j]) for j in range(size)] for i in range(size)]
+
+
+def _sum_products(u: list[float], v: list[float]) -> float:
+    """``Σ u_k v_k`` accumulated from k = 0."""
+    acc = 0.0
+    for a, b in zip(u, v, strict=True):
+        acc += a * b
+    return acc
+
+
+def _square(flat: list[float], n: int) -> list[list[float]]:
+    return [flat[i * n : (i + 1) * n] for i in range(n)]
+
+
+def _flat(rows: list[list[float]]) -> list[float]:
+    return [v for row in rows for v in row]
