@@ -238,6 +238,24 @@ def test_mmae_probabilities_survive_extreme_likelihoods() -> None:
     assert np.all(post >= 1e-3 / (1 + 2e-3))
 
 
+def test_compiled_mmae_probabilities_are_the_python_ones_bit_for_bit() -> None:
+    # the unit-size update kernel computes the probabilities (one call a frame): the same
+    # float operations in the same order as mmae_probabilities
+    from dffd.core import kernels_track
+
+    rng = np.random.default_rng(3)
+    cases = [
+        (np.array([0.5, 0.3, 0.2]), np.log([0.1, 0.4, 0.001]), 0.0),
+        (np.full(3, 1 / 3), np.array([-1e5, -1e5 - 50.0, -3e5]), 1e-3),
+        (np.array([0.0, 0.6, 0.4]), np.array([1.0, -2.0, 0.5]), 1e-3),
+    ]
+    cases += [(rng.dirichlet(np.ones(3)), rng.normal(0, 30, 3), 1e-3) for _ in range(200)]
+    for prior, loglik, floor in cases:
+        out = np.empty(3)
+        kernels_track.mmae_probabilities(prior, loglik, floor, out)
+        assert out.tolist() == mmae_probabilities(prior, loglik, floor).tolist()
+
+
 def test_markov_matrix_is_the_exact_chain_transition() -> None:
     rate, n = 0.3, 3
     gen = rate / (n - 1) * (np.ones((n, n)) - n * np.eye(n))

@@ -164,12 +164,16 @@ class KernelSet(Protocol):
         ps: FloatArray,
         m: FloatArray,
         sigma_m: FloatArray,
+        mu: FloatArray,
+        floor: float,
         xs_out: FloatArray,
         ps_out: FloatArray,
         loglik: FloatArray,
+        mu_out: FloatArray,
         /,
     ) -> int:
-        """Every model's update on a unit-size point; 1 when not positive definite."""
+        """Every model's update on a unit-size point and the MMAE probabilities after it; 1
+        when not positive definite."""
 
     def track_size_update(  # noqa: PLR0917 - the kernels' positional signature
         self,

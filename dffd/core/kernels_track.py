@@ -32,7 +32,13 @@ from dffd.core.kernel_layout import (
     MODEL_CT,
 )
 
-__all__ = ["track_combine", "track_predict", "track_size_update", "track_unit_update"]
+__all__ = [
+    "mmae_probabilities",
+    "track_combine",
+    "track_predict",
+    "track_size_update",
+    "track_unit_update",
+]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -193,6 +199,8 @@ def track_predict(  # noqa: PLR0917 - numba kernels take positional arguments
     f = np.zeros((_D, _D))
     qm = np.zeros((_D, _D))
     tmp = np.empty((_D, _D))
+    nz = np.empty((_D, _D), dtype=np.int64)  # row i's non-zero columns of F, in order
+    nnz = np.empty(_D, dtype=np.int64)
     for j in range(xs.shape[0]):
         f[:, :] = 0.0
         qm[:, :] = 0.0
@@ -212,38 +220,79 @@ def track_predict(  # noqa: PLR0917 - numba kernels take positional arguments
         f[_SIZE, _SIZE] = 1.0
         qm[_SIZE, _SIZE] = q_size * dt
         xo[_SIZE] = x[_SIZE]
+        # F is sparse (at most 4 non-zeros a row of 11): the products skip its zeros. A skipped
+        # term is an exact ±0 in the dense sum, so every entry is the same value as F P Fᵀ
+        # summed densely in index order.
+        for i in range(_D):
+            cnt = 0
+            for k in range(_D):
+                if f[i, k] != 0.0:
+                    nz[i, cnt] = k
+                    cnt += 1
+            nnz[i] = cnt
         p = ps[j]
         for i in range(_D):
             for k in range(_D):
                 acc = 0.0
-                for m in range(_D):
+                for e in range(nnz[i]):
+                    m = nz[i, e]
                     acc += f[i, m] * p[m, k]
                 tmp[i, k] = acc
         po = ps_out[j]
         for i in range(_D):
             for k in range(_D):
                 acc = 0.0
-                for m in range(_D):
+                for e in range(nnz[k]):
+                    m = nz[k, e]
                     acc += tmp[i, m] * f[k, m]
                 po[i, k] = acc + qm[i, k]
         _symmetrise(po)
 
 
-@_jit(f"int64({_M}, {_T}, {_V}, {_M}, {_M}, {_T}, {_V})")
+@_jit(f"void({_V}, {_V}, float64, {_V})")
+def mmae_probabilities(
+    prior: FloatArray, log_likelihoods: FloatArray, floor: float, out: FloatArray
+) -> None:
+    """Bayes' rule in log space, ``μ_j ∝ μ_j L_j``, every μ raised to ``floor``, into ``out``
+    (:func:`dffd.core.tracking3d.mmae_probabilities`'s float operations, in its order)."""
+    n = prior.shape[0]
+    top = -math.inf
+    for j in range(n):
+        v = math.log(prior[j]) + log_likelihoods[j] if prior[j] > 0.0 else -math.inf
+        out[j] = v
+        top = max(top, v)
+    total = 0.0
+    for j in range(n):
+        out[j] = math.exp(out[j] - top)
+        total += out[j]
+    norm = 0.0
+    for j in range(n):
+        out[j] = max(out[j] / total, floor)
+        norm += out[j]
+    for j in range(n):
+        out[j] = out[j] / norm
+
+
+@_jit(f"int64({_M}, {_T}, {_V}, {_M}, {_V}, float64, {_M}, {_T}, {_V}, {_V})")
 def track_unit_update(  # noqa: PLR0917 - numba kernels take positional arguments
     xs: FloatArray,
     ps: FloatArray,
     m: FloatArray,
     sigma_m: FloatArray,
+    mu: FloatArray,
+    floor: float,
     xs_out: FloatArray,
     ps_out: FloatArray,
     loglik: FloatArray,
+    mu_out: FloatArray,
 ) -> int:
     """Joseph-form update of every model on the pseudo-measurement ``0 = p − R m``.
 
     ``H = [I₃ 0 … −m]``, noise ``R̂² Σ_m``; the innovation covariance symmetrised and inverted by
-    cofactors; ``loglik[j]`` the Gaussian log-likelihood of model j's innovation. Returns 0, or
-    1 when an innovation covariance is not positive definite (the outputs are then undefined).
+    cofactors; ``loglik[j]`` the Gaussian log-likelihood of model j's innovation; ``mu_out``
+    the models' probabilities after it (:func:`mmae_probabilities` of ``mu`` with ``floor``;
+    ``mu`` itself for a bank of one). Returns 0, or 1 when an innovation covariance is not
+    positive definite (the outputs are then undefined).
     """
     pht = np.empty((_D, 3))
     gain = np.empty((_D, 3))
@@ -309,6 +358,10 @@ def track_unit_update(  # noqa: PLR0917 - numba kernels take positional argument
                     w[i, 0] * gain[k, 0] + w[i, 1] * gain[k, 1] + w[i, 2] * gain[k, 2]
                 )
         _symmetrise(po)
+    if xs.shape[0] > 1:
+        mmae_probabilities(mu, loglik, floor, mu_out)
+    else:
+        mu_out[:] = mu
     return 0
 
 

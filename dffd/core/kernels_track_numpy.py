@@ -35,6 +35,7 @@ from dffd.core.motion_models import (
 
 __all__ = [
     "inv3_loglik_stack",
+    "mmae_probabilities",
     "predict_models",
     "size_update",
     "sym_stack",
@@ -78,12 +79,16 @@ def track_unit_update(  # noqa: PLR0917 - the compiled kernels' positional signa
     ps: FloatArray,
     m: FloatArray,
     sigma_m: FloatArray,
+    mu: FloatArray,
+    floor: float,
     xs_out: FloatArray,
     ps_out: FloatArray,
     loglik: FloatArray,
+    mu_out: FloatArray,
 ) -> int:
-    """:func:`unit_update_all` into the outputs; 1 when an innovation covariance is not
-    positive definite, else 0."""
+    """:func:`unit_update_all` into the outputs and the models' probabilities after it
+    (:func:`mmae_probabilities`; ``mu`` for a bank of one); 1 when an innovation covariance is
+    not positive definite, else 0."""
     try:
         x_new, p_new, ll = unit_update_all(xs, ps, m, sigma_m)
     except np.linalg.LinAlgError:
@@ -91,7 +96,22 @@ def track_unit_update(  # noqa: PLR0917 - the compiled kernels' positional signa
     xs_out[:] = x_new
     ps_out[:] = p_new
     loglik[:] = ll
+    mu_out[:] = mmae_probabilities(mu, ll, floor) if len(mu) > 1 else mu
     return 0
+
+
+def mmae_probabilities(prior: FloatArray, log_likelihoods: FloatArray, floor: float) -> FloatArray:
+    """Bayes' rule in log space, ``μ_j ∝ μ_j L_j``, then every μ raised to ``floor``."""
+    # A handful of models: plain floats (NumPy's per-call cost dominates at this size).
+    log_post = [
+        math.log(p) + ll if p > 0.0 else -math.inf
+        for p, ll in zip(prior.tolist(), log_likelihoods.tolist(), strict=True)
+    ]
+    top = max(log_post)
+    post = [math.exp(v - top) for v in log_post]
+    total = sum(post)
+    post = [max(v / total, floor) for v in post]
+    return np.asarray(post, dtype=np.float64) / sum(post)
 
 
 def track_size_update(  # noqa: PLR0917 - the compiled kernels' positional signature

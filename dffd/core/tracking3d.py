@@ -63,7 +63,7 @@ from dffd.core.kernel_layout import (
     MODEL_CV,
     N_COMBINE,
 )
-from dffd.core.kernels_track_numpy import predict_models
+from dffd.core.kernels_track_numpy import mmae_probabilities, predict_models
 from dffd.core.motion_models import (
     ACC,
     OMEGA,
@@ -282,20 +282,6 @@ def direction_rate_deg_s(est: Track3DEstimate) -> tuple[float, float]:
     return math.degrees(pan_rate), math.degrees(tilt_rate)
 
 
-def mmae_probabilities(prior: FloatArray, log_likelihoods: FloatArray, floor: float) -> FloatArray:
-    """Bayes' rule in log space, ``μ_j ∝ μ_j L_j``, then every μ raised to ``floor``."""
-    # A handful of models: plain floats (NumPy's per-call cost dominates at this size).
-    log_post = [
-        math.log(p) + ll if p > 0.0 else -math.inf
-        for p, ll in zip(prior.tolist(), log_likelihoods.tolist(), strict=True)
-    ]
-    top = max(log_post)
-    post = [math.exp(v - top) for v in log_post]
-    total = sum(post)
-    post = [max(v / total, floor) for v in post]
-    return np.asarray(post, dtype=np.float64) / sum(post)
-
-
 def markov_matrix(n: int, rate_hz: float, dt: float) -> FloatArray:
     """``exp(Λ dt)`` of a chain leaving each of ``n`` models at ``rate_hz`` for any other.
 
@@ -359,6 +345,11 @@ class Tracker3D:
             [getattr(m, "q_omega", 0.0) for m in self.models], dtype=np.float64
         )
         self._combined = np.empty(N_COMBINE)
+        # Spare state, covariance and probability buffers a kernel writes its output into (then
+        # swapped with the current ones: no allocation per step), and the log-likelihoods.
+        self._spare = (np.empty((n, TRACK_DIM)), np.empty((n, TRACK_DIM, TRACK_DIM)))
+        self._spare_mu = np.empty(n)
+        self._loglik = np.empty(n)
 
     @classmethod
     def of_kind(cls, kind: TrackerKind, config: Tracker3DConfig | None = None) -> Tracker3D:
@@ -437,23 +428,29 @@ class Tracker3D:
             self._start(t, size[0] * unit[0], size[0] ** 2 * unit[1])
             self._start_size(unit[0], size)
             return self.estimate()
-        self._advance(t)
         impl = kernel_dispatch.current()
+        self._advance(t, impl)
         if size is not None:
-            xs, ps = np.empty_like(self._x), np.empty_like(self._p)
+            xs, ps = self._spare
             impl.track_size_update(self._x, self._p, size[0], size[1], xs, ps)
-            self._x, self._p = xs, ps
+            self._swap()
         if unit is not None:
-            xs, ps = np.empty_like(self._x), np.empty_like(self._p)
-            loglik = np.empty(len(self.models))
+            xs, ps = self._spare
+            mu = self._spare_mu
             m, sigma_m = np.ascontiguousarray(unit[0]), np.ascontiguousarray(unit[1])
-            if impl.track_unit_update(self._x, self._p, m, sigma_m, xs, ps, loglik) != 0:
+            floor = self.config.probability_floor
+            if (
+                impl.track_unit_update(
+                    self._x, self._p, m, sigma_m, self._mu, floor, xs, ps, self._loglik, mu
+                )
+                != 0
+            ):
                 raise np.linalg.LinAlgError(
                     f"innovation covariance is not positive definite (unit point {unit!r})"
                 )
-            self._x, self._p = xs, ps
-            self._update_probabilities(loglik)
-        combined = self._combine()
+            self._swap()
+            self._spare_mu, self._mu = self._mu, mu
+        combined = self._combine(impl)
         if self._size is not None:
             self._size = combined[COMBINE_SIZE], combined[COMBINE_SIZE_VAR]
         return self._estimate_of(combined)
@@ -491,12 +488,13 @@ class Tracker3D:
 
     # -- private ----------------------------------------------------------------------------
 
-    def _combine(self) -> list[float]:
+    def _combine(self, impl: kernel_dispatch.KernelSet | None = None) -> list[float]:
         """The combined state, turn rate, position variances and size (kernel_layout's
-        ``COMBINE_*`` slots) of the current bank."""
+        ``COMBINE_*`` slots) of the current bank (``impl``: the kernels, default current)."""
         out = self._combined
         if self._codes is not None:
-            kernel_dispatch.current().track_combine(self._mu, self._x, self._p, self._codes, out)
+            impl = kernel_dispatch.current() if impl is None else impl
+            impl.track_combine(self._mu, self._x, self._p, self._codes, out)
             return out.tolist()
         mu = self._mu
         xs = self._x
@@ -567,28 +565,34 @@ class Tracker3D:
         """No track yet, or a measurement after a gap longer than ``max_gap_s``."""
         return self._t is None or (measured and t - self._t > self.config.max_gap_s)
 
-    def _advance(self, t: float) -> None:
+    def _advance(self, t: float, impl: kernel_dispatch.KernelSet | None = None) -> None:
         assert self._t is not None
         dt = t - self._t
         if dt > 0.0:
-            self._predict(dt)
+            self._predict(dt, impl)
             self._t = t
 
-    def _predict(self, dt: float) -> None:
+    def _predict(self, dt: float, impl: kernel_dispatch.KernelSet | None = None) -> None:
         xs, ps = self._x, self._p
         if self.method == "imm" and len(self.models) > 1:
             pi = markov_matrix(len(self.models), self.config.switch_rate_hz, dt)
             xs, ps, self._mu = imm_mix(xs, ps, self._mu, pi)
         # F = diag(F_model, 1) and Q = diag(Q_model, q_size dt): the size is carried by every
         # model; every model in one kernel call (or one stacked NumPy product).
-        new_x, new_p = np.empty_like(xs), np.empty_like(ps)
+        new_x, new_p = self._spare
         q_size = self.config.q_size_m2_s
         if self._codes is None:
             predict_models(self.models, xs, ps, dt, q_size, new_x, new_p)
         else:
-            kernel_dispatch.current().track_predict(
+            impl = kernel_dispatch.current() if impl is None else impl
+            impl.track_predict(
                 xs, ps, self._codes, self._q, self._q_omega, dt, q_size, new_x, new_p
             )
+        self._swap()
+
+    def _swap(self) -> None:
+        """The spare buffers (just written) become the state; the old state the spare."""
+        (new_x, new_p), self._spare = self._spare, (self._x, self._p)
         self._x, self._p = new_x, new_p
 
     def _update_models(
