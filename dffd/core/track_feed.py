@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from dffd.core.tracking3d import CameraModel, DirectionSize, Tracker3DConfig, unit_size_point
+from dffd.core.tracking3d import CameraModel, Tracker3DConfig, unit_size_point_of
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -63,7 +63,8 @@ class SizeFeed:
         """The frame's unit-size point ``(m, Σ_m)`` and the pending burst's ``(R, σ_R²)``, its σ
         scaled by ``burst_sigma_scale``."""
         cfg = self.config
-        meas = DirectionSize(
+        # unit_size_point of the frame's DirectionSize, without building one (every frame)
+        unit = unit_size_point_of(
             frame.centroid_px,
             frame.pan_deg,
             frame.tilt_deg,
@@ -71,8 +72,8 @@ class SizeFeed:
             cfg.sigma_size_rel,
             cfg.sigma_px,
             cfg.sigma_angle_deg,
+            camera,
         )
-        unit = unit_size_point(meas, camera)
         size: tuple[float, float] | None = None
         if self._pending is not None:
             size_m, sigma_m = self._pending

@@ -205,42 +205,16 @@ def cartesian_measurement(
     meas: DirectionDepth, camera: CameraModel
 ) -> tuple[FloatArray, FloatArray]:
     """World point of the measurement and its covariance (first-order propagation)."""
-    k = camera.pixel_pitch_mm / camera.image_distance_mm
-    du = meas.centroid_px[0] - camera.principal_point_px[0]
-    dv = meas.centroid_px[1] - camera.principal_point_px[1]
-    z = meas.z_m
-    cam = (k * du * z, k * dv * z, z)
-    p, t = math.radians(meas.pan_deg), math.radians(meas.tilt_deg)
-    cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
-    # Written out on floats (once per tracking frame; NumPy's per-call cost on 3×3 products is
-    # most of the work): rot = R_pan R_tilt, and the products of the derivative matrices
-    # d(R_pan)/dp R_tilt and R_pan d(R_tilt)/dt, rows.
-    rot = ((cp, sp * st, sp * ct), (0.0, ct, -st), (-sp, cp * st, cp * ct))
-    d_rot_pan = ((-sp, cp * st, cp * ct), (0.0, 0.0, 0.0), (-cp, -sp * st, -sp * ct))
-    d_rot_tilt = ((0.0, sp * ct, -sp * st), (0.0, -st, -ct), (0.0, cp * ct, -cp * st))
-    world = [_dot3(row, cam) for row in rot]
-    # Jacobian with respect to (u, v, z, pan, tilt), rows of 5.
-    kz = k * z
-    unit_z = (k * du, k * dv, 1.0)
-    jac = [
-        (rot[i][0] * kz, rot[i][1] * kz, _dot3(rot[i], unit_z), _dot3(d_rot_pan[i], cam),
-         _dot3(d_rot_tilt[i], cam))
-        for i in range(3)
-    ]  # fmt: skip
-    sa = math.radians(meas.sigma_angle_deg)
-    var = (meas.sigma_px**2, meas.sigma_px**2, meas.sigma_z_m**2, sa * sa, sa * sa)
-    (a0, a1, a2, a3, a4), (b0, b1, b2, b3, b4), (c0, c1, c2, c3, c4) = jac
-    v0, v1, v2, v3, v4 = var
-    # J diag(var) Jᵀ: symmetric as computed (each entry one sum of the five terms).
-    wa = (a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4)
-    wb = (b0 * v0, b1 * v1, b2 * v2, b3 * v3, b4 * v4)
-    aa = wa[0] * a0 + wa[1] * a1 + wa[2] * a2 + wa[3] * a3 + wa[4] * a4
-    ab = wa[0] * b0 + wa[1] * b1 + wa[2] * b2 + wa[3] * b3 + wa[4] * b4
-    ac = wa[0] * c0 + wa[1] * c1 + wa[2] * c2 + wa[3] * c3 + wa[4] * c4
-    bb = wb[0] * b0 + wb[1] * b1 + wb[2] * b2 + wb[3] * b3 + wb[4] * b4
-    bc = wb[0] * c0 + wb[1] * c1 + wb[2] * c2 + wb[3] * c3 + wb[4] * c4
-    cc = c0 * v0 * c0 + c1 * v1 * c1 + c2 * v2 * c2 + c3 * v3 * c3 + c4 * v4 * c4
-    return np.array(world), np.array([[aa, ab, ac], [ab, bb, bc], [ac, bc, cc]])
+    return _cartesian(
+        meas.centroid_px,
+        meas.pan_deg,
+        meas.tilt_deg,
+        meas.z_m,
+        meas.sigma_z_m,
+        meas.sigma_px,
+        meas.sigma_angle_deg,
+        camera,
+    )
 
 
 def unit_size_point(meas: DirectionSize, camera: CameraModel) -> tuple[FloatArray, FloatArray]:
@@ -250,17 +224,33 @@ def unit_size_point(meas: DirectionSize, camera: CameraModel) -> tuple[FloatArra
     ``1/s`` with the relative size σ as its relative depth σ, so the covariance is
     :func:`cartesian_measurement`'s.
     """
-    z = 1.0 / meas.size_ratio
-    depth = DirectionDepth(
+    return unit_size_point_of(
         meas.centroid_px,
         meas.pan_deg,
         meas.tilt_deg,
-        z,
-        meas.sigma_size_rel * z,
+        meas.size_ratio,
+        meas.sigma_size_rel,
         meas.sigma_px,
         meas.sigma_angle_deg,
+        camera,
     )
-    return cartesian_measurement(depth, camera)
+
+
+def unit_size_point_of(  # noqa: PLR0917 - the fields of a DirectionSize, without building one
+    centroid_px: tuple[float, float],
+    pan_deg: float,
+    tilt_deg: float,
+    size_ratio: float,
+    sigma_size_rel: float,
+    sigma_px: float,
+    sigma_angle_deg: float,
+    camera: CameraModel,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`unit_size_point` of a :class:`DirectionSize` with these fields (a frame's call)."""
+    z = 1.0 / size_ratio
+    return _cartesian(
+        centroid_px, pan_deg, tilt_deg, z, sigma_size_rel * z, sigma_px, sigma_angle_deg, camera
+    )
 
 
 def direction_rate_deg_s(est: Track3DEstimate) -> tuple[float, float]:
@@ -716,8 +706,54 @@ def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
     return inv, math.log(det)
 
 
-def _dot3(a: Sequence[float], b: Sequence[float]) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+def _cartesian(  # noqa: PLR0917 - a DirectionDepth's fields
+    centroid_px: tuple[float, float],
+    pan_deg: float,
+    tilt_deg: float,
+    z: float,
+    sigma_z_m: float,
+    sigma_px: float,
+    sigma_angle_deg: float,
+    camera: CameraModel,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`cartesian_measurement` on the measurement's fields."""
+    k = camera.pixel_pitch_mm / camera.image_distance_mm
+    du = centroid_px[0] - camera.principal_point_px[0]
+    dv = centroid_px[1] - camera.principal_point_px[1]
+    q0, q1, q2 = k * du * z, k * dv * z, z  # the camera-frame point
+    p, t = math.radians(pan_deg), math.radians(tilt_deg)
+    cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
+    # Written out on floats (once per tracking frame; NumPy's per-call cost on 3×3 products is
+    # most of the work): rot = R_pan R_tilt, and the products of the derivative matrices
+    # d(R_pan)/dp R_tilt and R_pan d(R_tilt)/dt, rows; every dot product summed left to right.
+    rot = ((cp, sp * st, sp * ct), (0.0, ct, -st), (-sp, cp * st, cp * ct))
+    d_rot_pan = ((-sp, cp * st, cp * ct), (0.0, 0.0, 0.0), (-cp, -sp * st, -sp * ct))
+    d_rot_tilt = ((0.0, sp * ct, -sp * st), (0.0, -st, -ct), (0.0, cp * ct, -cp * st))
+    world = [r0 * q0 + r1 * q1 + r2 * q2 for r0, r1, r2 in rot]
+    # Jacobian with respect to (u, v, z, pan, tilt), rows of 5.
+    kz = k * z
+    u0, u1 = k * du, k * dv  # the unit-depth point (u0, u1, 1)
+    jac = [
+        (r0 * kz, r1 * kz, r0 * u0 + r1 * u1 + r2 * 1.0,
+         dp0 * q0 + dp1 * q1 + dp2 * q2, dt0 * q0 + dt1 * q1 + dt2 * q2)
+        for (r0, r1, r2), (dp0, dp1, dp2), (dt0, dt1, dt2) in zip(
+            rot, d_rot_pan, d_rot_tilt, strict=True
+        )
+    ]  # fmt: skip
+    sa = math.radians(sigma_angle_deg)
+    var = (sigma_px**2, sigma_px**2, sigma_z_m**2, sa * sa, sa * sa)
+    (a0, a1, a2, a3, a4), (b0, b1, b2, b3, b4), (c0, c1, c2, c3, c4) = jac
+    v0, v1, v2, v3, v4 = var
+    # J diag(var) Jᵀ: symmetric as computed (each entry one sum of the five terms).
+    wa = (a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4)
+    wb = (b0 * v0, b1 * v1, b2 * v2, b3 * v3, b4 * v4)
+    aa = wa[0] * a0 + wa[1] * a1 + wa[2] * a2 + wa[3] * a3 + wa[4] * a4
+    ab = wa[0] * b0 + wa[1] * b1 + wa[2] * b2 + wa[3] * b3 + wa[4] * b4
+    ac = wa[0] * c0 + wa[1] * c1 + wa[2] * c2 + wa[3] * c3 + wa[4] * c4
+    bb = wb[0] * b0 + wb[1] * b1 + wb[2] * b2 + wb[3] * b3 + wb[4] * b4
+    bc = wb[0] * c0 + wb[1] * c1 + wb[2] * c2 + wb[3] * c3 + wb[4] * c4
+    cc = c0 * v0 * c0 + c1 * v1 * c1 + c2 * v2 * c2 + c3 * v3 * c3 + c4 * v4 * c4
+    return np.array(world), np.array([[aa, ab, ac], [ab, bb, bc], [ac, bc, cc]])
 
 
 def _sym(m: FloatArray) -> FloatArray:
