@@ -238,3 +238,20 @@ def test_the_trackers_pooled_cost_equals_the_reference_pooling() -> None:
     assert reference is not None
     assert pooled == pytest.approx(reference, rel=1e-9)
     assert frame_cost(obs, "peak_gradient") == focus_cost(obs.peak_sq)
+
+
+def test_compiled_focus_cost_is_the_numpy_twins_bit_for_bit() -> None:
+    # The compiled cost reproduces NumPy's pairwise sums (blocks of 8 running sums, halving
+    # above 128 values): the same g and σ_g to the last bit, NaN normals and short lists too.
+    from dffd.core import kernels_track, kernels_track_numpy
+
+    rng = np.random.default_rng(11)
+    for n in [*range(1, 40), 63, 64, 65, 127, 128, 129, 200, 257, 300, 1031]:
+        for _ in range(3):
+            peaks = rng.lognormal(2.0, 1.5, n)
+            peaks[rng.random(n) < 0.1] = np.nan
+            for trim in (0.0, 0.1, 0.25):
+                got, want = np.full(2, -1.0), np.full(2, -1.0)
+                ok = kernels_track.focus_cost(peaks, trim, got)
+                assert ok == kernels_track_numpy.focus_cost(peaks, trim, want)
+                assert got.tolist() == want.tolist()

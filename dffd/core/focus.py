@@ -16,6 +16,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core import kernel_dispatch
 from dffd.core.lens import Lens
 from dffd.literals import FocusMeasure
 
@@ -96,24 +97,11 @@ def focus_cost(
     Trimmed mean over the valid normals (``trim_fraction`` dropped at each end); σ_g is the
     standard error of that mean carried through the inverse.
     """
-    # One reduction per statistic on the kept values (this runs on every burst and tracking
-    # frame): the same sums as ndarray.mean / .std(ddof=1), without their per-call overhead.
-    vals = peak_sq[np.isfinite(peak_sq)]
-    n = len(vals)
-    if n < 8:
+    out = np.empty(2)
+    values = np.asarray(peak_sq, dtype=np.float64)
+    if not kernel_dispatch.current().focus_cost(values, trim_fraction, out):
         return None
-    vals.sort()
-    cut = int(trim_fraction * n)
-    kept = vals[cut : n - cut] if n - 2 * cut >= 4 else vals
-    k = len(kept)
-    mean = float(np.add.reduce(kept)) / k
-    if mean <= 0:
-        return None
-    dev = kept - mean
-    dev *= dev
-    se = math.sqrt(float(np.add.reduce(dev)) / (k - 1)) / math.sqrt(k)
-    g = 1.0 / mean
-    return g, g * se / mean
+    return float(out[0]), float(out[1])
 
 
 def edge_variance_cost(

@@ -192,6 +192,9 @@ class KernelSet(Protocol):
     ) -> None:
         """The bank's probability-weighted estimate."""
 
+    def focus_cost(self, peak_sq: FloatArray, trim_fraction: float, out: FloatArray, /) -> int:
+        """Cost (2) of a frame's per-normal peaks into ``out`` = (g, σ_g); 0 when none."""
+
 
 _active: KernelSet | None = None  # None: nothing chosen yet (the compiled kernels on first use)
 _compiled = False

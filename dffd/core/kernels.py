@@ -61,6 +61,7 @@ from dffd.core.kernels_edges import (  # the focus measure's and the gradient's,
     sobel_pair,
 )
 from dffd.core.kernels_track import (  # the 3D tracker's kernels, dispatched with these
+    focus_cost,  # the focus cost (2), dispatched too
     track_combine,
     track_predict,
     track_size_update,
@@ -74,6 +75,7 @@ __all__ = [
     "edge_moments",
     "fit_pass",
     "fit_passes",
+    "focus_cost",
     "normals_and_box",
     "polarity",
     "resample",

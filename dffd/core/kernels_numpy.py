@@ -56,6 +56,7 @@ from dffd.core.kernel_layout import (
     TINY,
 )
 from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatched with these
+    focus_cost,  # the focus cost (2), dispatched too
     track_combine,
     track_predict,
     track_size_update,
@@ -67,6 +68,7 @@ __all__ = [
     "edge_moments",
     "fit_pass",
     "fit_passes",
+    "focus_cost",
     "normals_and_box",
     "polarity",
     "resample",

@@ -33,6 +33,7 @@ from dffd.core.kernel_layout import (
 )
 
 __all__ = [
+    "focus_cost",
     "mmae_probabilities",
     "track_combine",
     "track_predict",
@@ -438,3 +439,106 @@ def track_combine(
     out[COMBINE_OMEGA] = omega
     out[COMBINE_SIZE] = size
     out[COMBINE_SIZE_VAR] = size_var
+
+
+# -- the focus cost (2) of a frame (dffd.core.focus.focus_cost) ---------------------------------
+@_jit(f"float64({_V}, int64, int64)")
+def _pairwise_block(a: FloatArray, lo: int, n: int) -> float:
+    """NumPy's pairwise sum of ``a[lo:lo + n]`` for ``n`` <= 128: a plain loop below 8, else
+    eight running sums, combined pairwise, then the rest."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        b = lo + i
+        r0 += a[b]
+        r1 += a[b + 1]
+        r2 += a[b + 2]
+        r3 += a[b + 3]
+        r4 += a[b + 4]
+        r5 += a[b + 5]
+        r6 += a[b + 6]
+        r7 += a[b + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return float(res)
+
+
+@_jit(f"float64({_V}, int64, int64)")
+def _pairwise_sum(a: FloatArray, lo: int, n: int) -> float:
+    """``np.add.reduce(a[lo:lo + n])`` bit for bit: NumPy's pairwise summation (blocks of up
+    to 128, halved above at a multiple of 8: the halving tree evaluated with an explicit stack,
+    left before right), which a plain loop does not reproduce."""
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    f_lo = np.empty(64, dtype=np.int64)
+    f_n = np.empty(64, dtype=np.int64)
+    f_stage = np.empty(64, dtype=np.int64)
+    values = np.empty(64)
+    sp, vp = 1, 0
+    f_lo[0], f_n[0], f_stage[0] = lo, n, 0
+    while sp > 0:
+        top = sp - 1
+        seg_lo, seg_n = f_lo[top], f_n[top]
+        if seg_n <= 128:
+            values[vp] = _pairwise_block(a, seg_lo, seg_n)
+            vp += 1
+            sp -= 1
+            continue
+        half = seg_n // 2
+        half -= half % 8
+        if f_stage[top] == 0:
+            f_stage[top] = 1
+            f_lo[sp], f_n[sp], f_stage[sp] = seg_lo, half, 0
+            sp += 1
+        elif f_stage[top] == 1:
+            f_stage[top] = 2
+            f_lo[sp], f_n[sp], f_stage[sp] = seg_lo + half, seg_n - half, 0
+            sp += 1
+        else:
+            values[vp - 2] = values[vp - 2] + values[vp - 1]
+            vp -= 1
+            sp -= 1
+    return float(values[0])
+
+
+@_jit("int64(float64[:], float64, float64[::1])")
+def focus_cost(peak_sq: FloatArray, trim_fraction: float, out: FloatArray) -> int:
+    """Cost (2) from the per-normal max ``||∇I||²`` (NaN = no edge) into ``out`` = (g, σ_g);
+    returns 1, or 0 when there is none. The NumPy twin's operations (its trimmed mean and
+    standard error: the same sorted values, the same pairwise sums), so the same values."""
+    n = 0
+    for v in peak_sq:
+        if math.isfinite(v):
+            n += 1
+    if n < 8:
+        return 0
+    vals = np.empty(n)
+    n = 0
+    for v in peak_sq:
+        if math.isfinite(v):
+            vals[n] = v
+            n += 1
+    vals.sort()
+    cut = int(trim_fraction * n)
+    lo, k = (cut, n - 2 * cut) if n - 2 * cut >= 4 else (0, n)
+    mean = _pairwise_sum(vals, lo, k) / k
+    if mean <= 0:
+        return 0
+    dev = np.empty(k)
+    for i in range(k):
+        d = vals[lo + i] - mean
+        dev[i] = d * d
+    se = math.sqrt(_pairwise_sum(dev, 0, k) / (k - 1)) / math.sqrt(k)
+    g = 1.0 / mean
+    out[0] = g
+    out[1] = g * se / mean
+    return 1

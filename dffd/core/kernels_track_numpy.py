@@ -34,6 +34,7 @@ from dffd.core.motion_models import (
 )
 
 __all__ = [
+    "focus_cost",
     "inv3_loglik_stack",
     "mmae_probabilities",
     "predict_models",
@@ -53,6 +54,31 @@ SIZE = STATE_DIM  # the size state R follows the models' 10 elements
 TRACK_DIM = STATE_DIM + 1
 _LOG_2PI = math.log(2.0 * math.pi)
 _POS_IDX = np.arange(3)  # the position's indices in the state (diagonal gathers)
+
+
+def focus_cost(peak_sq: FloatArray, trim_fraction: float, out: FloatArray) -> int:
+    """Cost (2) from per-normal max ``||∇I||²`` (NaN = no edge) into ``out`` = (g, σ_g);
+    returns 1, or 0 when there is none (:func:`dffd.core.focus.focus_cost`)."""
+    # One reduction per statistic on the kept values (this runs on every burst and tracking
+    # frame): the same sums as ndarray.mean / .std(ddof=1), without their per-call overhead.
+    vals = peak_sq[np.isfinite(peak_sq)]
+    n = len(vals)
+    if n < 8:
+        return 0
+    vals.sort()
+    cut = int(trim_fraction * n)
+    kept = vals[cut : n - cut] if n - 2 * cut >= 4 else vals
+    k = len(kept)
+    mean = float(np.add.reduce(kept)) / k
+    if mean <= 0:
+        return 0
+    dev = kept - mean
+    dev *= dev
+    se = math.sqrt(float(np.add.reduce(dev)) / (k - 1)) / math.sqrt(k)
+    g = 1.0 / mean
+    out[0] = g
+    out[1] = g * se / mean
+    return 1
 
 
 def track_predict(  # noqa: PLR0917 - the compiled kernels' positional signature
