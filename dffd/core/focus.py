@@ -98,7 +98,7 @@ def focus_cost(
     standard error of that mean carried through the inverse.
     """
     out = np.empty(2)
-    values = np.asarray(peak_sq, dtype=np.float64)
+    values = np.ascontiguousarray(peak_sq, dtype=np.float64)
     if not kernel_dispatch.current().focus_cost(values, trim_fraction, out):
         return None
     return float(out[0]), float(out[1])

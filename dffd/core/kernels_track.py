@@ -510,7 +510,7 @@ def _pairwise_sum(a: FloatArray, lo: int, n: int) -> float:
     return float(values[0])
 
 
-@_jit("int64(float64[:], float64, float64[::1])")
+@_jit(f"int64({_V}, float64, {_V})")
 def focus_cost(peak_sq: FloatArray, trim_fraction: float, out: FloatArray) -> int:
     """Cost (2) from the per-normal max ``||∇I||²`` (NaN = no edge) into ``out`` = (g, σ_g);
     returns 1, or 0 when there is none. The NumPy twin's operations (its trimmed mean and
