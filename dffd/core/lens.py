@@ -225,9 +225,16 @@ class _ScalarPchip:
             return math.nan
         i = min(bisect.bisect_right(x, xval) - 1, len(x) - 2)
         s = xval - x[i]
+        coeffs = self._coeffs[i]
+        if len(coeffs) == 4:  # PCHIP's cubics: the loop below unrolled, the same operations
+            c0, c1, c2, c3 = coeffs
+            z = 1.0 * s
+            res = (0.0 + c0 * 1.0) + c1 * z
+            z = z * s
+            res = res + c2 * z
+            return res + c3 * (z * s)
         res = 0.0
         z = 1.0
-        coeffs = self._coeffs[i]
         last = len(coeffs) - 1
         for k, c in enumerate(coeffs):
             res = res + c * z
