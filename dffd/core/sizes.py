@@ -46,21 +46,26 @@ class SizeHistory:
         Over the half second of a burst ``ln s`` is a straight line to well below its per-frame
         noise, and the fit averages that noise (a single frame's size is noisier).
         """
+        # The times increase strictly (add), so the frames from t0 on are a suffix: found from
+        # the newest back (a burst's half second, of up to maxlen frames), then summed in order.
+        ts, lns = self._t, self._ln
+        first = len(ts)
+        while first > 0 and ts[first - 1] >= t0:
+            first -= 1
+        window = [(ts[i], lns[i]) for i in range(first, len(ts)) if ts[i] <= t1]
         n = 0
         st = sl = 0.0
-        for t, ln in zip(self._t, self._ln, strict=True):
-            if t0 <= t <= t1:
-                n += 1
-                st += t
-                sl += ln
+        for t, ln in window:
+            n += 1
+            st += t
+            sl += ln
         if n < 2:
             return None
         tm, lm = st / n, sl / n
         stt = stl = 0.0
-        for t, ln in zip(self._t, self._ln, strict=True):
-            if t0 <= t <= t1:
-                stt += (t - tm) * (t - tm)
-                stl += (t - tm) * (ln - lm)
+        for t, ln in window:
+            stt += (t - tm) * (t - tm)
+            stl += (t - tm) * (ln - lm)
         return tm, lm, (stl / stt if stt > 0 else 0.0)
 
     def ln_at(self, t: float) -> float | None:
