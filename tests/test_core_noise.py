@@ -17,6 +17,7 @@ from dffd.core.noise import (
     DriftRate,
     InnovationScale,
     NoiseAdaptConfig,
+    ProcessNoise,
     SlowErrors,
     TimeOffset,
     shared_frame_correlation,
@@ -158,7 +159,7 @@ def test_slow_errors_factor_sees_errors_that_do_not_average_out() -> None:
         white.update(math.log(0.04) + rng.normal(0.0, 0.003), 0.003, 0.0)
         e = 0.9 * e + rng.normal(0.0, 0.003 * math.sqrt(1 - 0.81))
         slow.update(math.log(0.04) + e, 0.003, 0.0)
-    assert white.factor == pytest.approx(1.0, abs=0.3)
+    assert 0.8 < white.factor < 1.4  # one window's estimate (debiased: E[ι̂] ≥ 1)
     # Bartlett-weighted long-run variance over 10 lags of an AR(1) with φ = 0.9: ~6-7x γ₀
     assert 4.0 < slow.factor < 12.0
 
@@ -289,15 +290,17 @@ def _static_bank_run(
 
 
 def test_published_sigma_is_honest_on_gaussian_bursts_of_unknown_scale() -> None:
-    """The online estimates (λ from the size invariant, the process noise from its variogram,
-    re-weighting the whole history, the two-sided ι) make the published σ honest on Gaussian
-    burst errors twice the stated σ: 2σ covers 93-97 % of the LPV's errors over many independent
-    runs, and the KF's at most 98.5 % (its σ carries q̂'s positive estimation noise — clipped
-    at 0 — which its short memory feels more; docs/estimation.md §17)."""
+    """The online estimates (λ from the size invariant, the two-sided ι debiased for its own
+    noise, no process noise once the size invariant's statistics exist) make the published σ
+    honest on Gaussian burst errors twice the stated σ: 2σ covers 93-97 % of the LPV's errors
+    over many independent runs (0.945, NEES 1.05), and the KF's at most 99 % (0.987: ι is the
+    long-run factor of a long average, and the KF's memory is short; docs/estimation.md §18).
+    Without the debiasing of 1/ι̂ the LPV's fell to 0.926 (NEES 1.23) once q̂'s clipped noise
+    no longer widened it."""
     rng = np.random.default_rng(17)
     rows = [r for _ in range(120) for r in _static_bank_run(rng, 100, 0.02, 0.01)]
     a = np.array(rows)
-    for err, sig, name, hi in ((a[:, 0], a[:, 1], "lpv", 0.97), (a[:, 2], a[:, 3], "kf", 0.985)):
+    for err, sig, name, hi in ((a[:, 0], a[:, 1], "lpv", 0.97), (a[:, 2], a[:, 3], "kf", 0.99)):
         cover = float(np.mean(np.abs(err) <= 2.0 * sig))
         assert 0.93 <= cover <= hi, (name, cover, float(np.mean((err / sig) ** 2)))
 
@@ -341,18 +344,60 @@ def test_process_noise_weights_reweight_the_whole_history() -> None:
     assert split.var_z == pytest.approx(whole[0, 0], rel=1e-9)
 
 
-def test_slow_error_factor_is_corrected_for_its_own_noise() -> None:
-    """On white errors (true ι = 1) over the 60-burst window the estimate is unbiased, and the
-    mean of 1/ι̂ — ι scales a variance, so 1/ι̂ is what a NEES sees — is within 1.2 (without the
-    correction for the Bartlett estimate's bias and noise: E[ι̂] 0.84, E[1/ι̂] 1.47)."""
+@pytest.mark.parametrize("bursts", [12, 15, 30, 60])
+def test_slow_error_factor_is_corrected_for_its_own_noise(bursts: int) -> None:
+    """On white errors (true ι = 1) ι acts from the 12th burst, its lags a third of the bursts,
+    and at every window length the mean of 1/ι̂ — ι scales a variance, so 1/ι̂ is what a NEES
+    sees — is within 1 ± 0.15 (§17's correction ι̂ (1 + r): E[1/ι̂] 1.18–1.36, a σ too small on
+    average; without any: 1.45–1.9); ι̂ itself is ≥ 1 on average (docs/estimation.md §18)."""
     rng = np.random.default_rng(23)
     cfg = NoiseAdaptConfig(slow_error_min=0.01, slow_error_max=100.0)
     factors = []
     for _ in range(400):
         est = SlowErrors(cfg)
-        for _ in range(60):
+        for _ in range(bursts):
             est.update(math.log(0.04) + rng.normal(0.0, 0.003), 0.003, 0.0)
         factors.append(est.factor)
     f = np.array(factors)
-    assert float(np.mean(f)) == pytest.approx(1.0, abs=0.1)
-    assert float(np.mean(1.0 / f)) < 1.2
+    assert float(np.std(f)) > 0.1  # estimated at this window, not the prior
+    assert float(np.mean(1.0 / f)) == pytest.approx(1.0, abs=0.15)
+    assert float(np.mean(f)) >= 1.0
+
+
+def test_slow_error_factor_waits_for_its_first_bursts() -> None:
+    """Before ``slow_error_min_bursts`` size measurements ι is the model's 1; at that many it
+    is estimated (3 lags at 12 bursts)."""
+    rng = np.random.default_rng(5)
+    est = SlowErrors(NoiseAdaptConfig())
+    seen = [est.update(math.log(0.04) + rng.normal(0.0, 0.003), 0.003, 0.5) for _ in range(12)]
+    assert seen[:11] == [1.0] * 11
+    assert seen[11] != 1.0
+
+
+@pytest.mark.parametrize("mode", ["data", "drift", "kf"])
+def test_process_noise_of_the_sigma_after_the_size_statistics(mode: ProcessNoise) -> None:
+    """The σ propagation runs on the Kalman filter's process noise until ``drift_min_bursts``
+    size measurements; then none with ``"data"`` (the size invariant's wander is a slow
+    measurement error, which ι counts: a random walk on top counted it twice), the size
+    invariant's random-walk rate with ``"drift"``, the KF's with ``"kf"``."""
+    rng = np.random.default_rng(3)
+    adapt = NoiseAdaptConfig(process_noise=mode)
+    noise = KFNoise()
+    k1, k2 = cf2_gains(0.04, 0.015, 0.05)
+    unc = Uncertainty(
+        noise, adapt, cf1_k=1.0, cf2_gains=(k1, k2), lpv=LPVGains.from_poles(0.15, 0.8, -2, 2)
+    )
+    kf_weights = (noise.sigma_rho**2, noise.sigma_b**2)
+    walk = 0.0
+    for n in range(adapt.drift_min_bursts):
+        assert unc.process_weights() == kf_weights
+        walk += rng.normal(0.0, 0.01)  # a wandering size invariant, well above its noise
+        unc.observe_size(math.log(0.04) + walk, 0.0, 0.001, (2 * n, 2 * n + 1, 2 * n + 2), n)
+    w = unc.process_weights()
+    if mode == "data":
+        assert w == (0.0, 0.0)
+    elif mode == "drift":
+        assert w[0] > 1e-5
+        assert w[1] == 0.0
+    else:
+        assert w == kf_weights

@@ -33,7 +33,7 @@ from typing import Literal
 
 from scipy import stats
 
-ProcessNoise = Literal["data", "kf"]
+ProcessNoise = Literal["data", "drift", "kf"]
 
 # The burst's parabola is a model of the cost: its vertex moves by ``slope × `` the true offset
 # of the sharp setting from the bracket centre, so a vertex far from the centre carries a model
@@ -79,9 +79,11 @@ class NoiseAdaptConfig:
     # (2 .. this many bursts, ~9 s: the slow filters' time constant) and the bursts it needs.
     drift_max_lag: int = 20
     drift_min_bursts: int = 30
-    # "data": the σ propagation's process noise is DriftRate's once it has drift_min_bursts
-    # (the Kalman filter's σ_ρ, σ_b until then); "kf": the Kalman filter's throughout (before
-    # docs/estimation.md §14). The Kalman filter itself keeps its own noise either way.
+    # The σ propagation's process noise: the Kalman filter's σ_ρ, σ_b until drift_min_bursts size
+    # measurements, then "data": none (the size invariant's wander is a slow measurement error,
+    # which ι counts; docs/estimation.md §18), "drift": DriftRate's q̂ (§14, §17; it counted that
+    # wander a second time); "kf": the Kalman filter's throughout (before §14). The Kalman filter
+    # itself keeps its own noise either way.
     process_noise: ProcessNoise = "data"
     # ι's lower bound: two-sided since docs/estimation.md §17 (errors that alternate in sign
     # average out faster than the MA(1) model says: static targets on the reference optics, lags
@@ -89,6 +91,11 @@ class NoiseAdaptConfig:
     # estimate is bias-corrected for its own noise (SlowErrors), without which a two-sided ι
     # made the σ overconfident on white bursts (NEES 1.24).
     slow_error_min: float = 0.25
+    # ι acts from this many bursts on (33 before docs/estimation.md §18), its lags a third of
+    # the bursts seen (at most slow_error_lags): 12 bursts give 3 lags, which see the shared
+    # frame's lag-1 correlation and the closed loop's negative ones at lags 2-3; from 9 bursts
+    # the debiased 1/ι̂ is 10-20 % low on white errors, from 12 within 8 %
+    slow_error_min_bursts: int = 12
 
 
 def student_factor(dof: float) -> float:
@@ -158,10 +165,13 @@ class SlowErrors:
     underestimated (``ι > 1``) or overestimated (``ι < 1``): ``ι = LRV / (γ₀ (1 + 2c w₁))``.
 
     The Bartlett estimate of a long-run variance with ``M = lags + 1`` over ``n`` samples about
-    their mean is biased low and noisy (relative variance ~``4M/(3n)``, ~8 degrees of freedom at
-    11 lags and 60 bursts), and a σ scaled by a noisy ι is too small on average. The factor is
-    ``ι̂ (1 + 4M/(3n))``: on white errors over 60 bursts E[ι̂] 0.84 → 1.05 and E[1/ι̂] 1.47 → 1.18
-    (docs/estimation.md §17); bounded to ``[slow_error_min, slow_error_max]``.
+    their mean is biased low and noisy (relative variance ``r ≈ 4M/(3n)``, ~8 degrees of freedom
+    at 11 lags and 60 bursts), and a σ scaled by a noisy ι is too small on average: a NEES sees
+    ``1/ι̂``. The factor is ``ι̂ (1 + r)/(1 − r/2)``, which makes E[1/ι̂] ≈ 1 on white errors
+    (0.86–1.07 from 9 to 60 bursts; E[ι̂] 1.2–1.4, the price of estimating it; §17's ``ι̂ (1 + r)``
+    gave E[1/ι̂] 1.18–1.36). The lags grow with the bursts seen (``n/3 − 1``, at most ``lags``),
+    so ι acts from ``slow_error_min_bursts`` on (docs/estimation.md §18); bounded to
+    ``[slow_error_min, slow_error_max]``.
     """
 
     def __init__(self, config: NoiseAdaptConfig) -> None:
@@ -175,9 +185,11 @@ class SlowErrors:
         if not (sigma_rel > 0 and math.isfinite(log_size)):
             return self.factor
         self._x.append((log_size, sigma_rel))
-        lags = c.slow_error_lags
         n = len(self._x)
-        if n < 3 * (lags + 1):
+        # the lags grow with the window (a third of it, at most ``slow_error_lags``): the
+        # debiased estimate below is as honest at 12 bursts and 3 lags as at 60 and 10
+        lags = min(c.slow_error_lags, n // 3 - 1)
+        if n < c.slow_error_min_bursts or lags < 1:
             return self.factor
         w_sum = sum(1.0 / (s * s) for _, s in self._x)
         mean = sum(x / (s * s) for x, s in self._x) / w_sum
@@ -187,7 +199,10 @@ class SlowErrors:
             return self.factor
         lrv = gamma[0] + 2.0 * sum((1.0 - j / (lags + 1)) * gamma[j] for j in range(1, lags + 1))
         model = gamma[0] * (1.0 + 2.0 * corr * (1.0 - 1.0 / (lags + 1)))
-        debias = 1.0 + 4.0 * (lags + 1) / (3.0 * n)  # the Bartlett estimate's bias and noise
+        # the Bartlett estimate's bias and noise (relative variance r): a variance scaled by ι̂
+        # is seen through 1/ι̂, which this makes unbiased (docs/estimation.md §18)
+        rel_var = 4.0 * (lags + 1) / (3.0 * n)
+        debias = (1.0 + rel_var) / (1.0 - 0.5 * rel_var)
         self.factor = min(max(debias * lrv / model, c.slow_error_min), c.slow_error_max)
         return self.factor
 

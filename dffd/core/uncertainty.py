@@ -211,6 +211,7 @@ class Uncertainty:
         self.slow = SlowErrors(adapt)
         self.drift = DriftRate(adapt)
         self._last_size: tuple[float, float, tuple[int, ...]] | None = None
+        self._sizes = 0  # size measurements seen
         self._cf1_k = cf1_k
         self._cf2 = cf2_gains
         self._lpv = lpv
@@ -258,7 +259,8 @@ class Uncertainty:
 
     @property
     def factor(self) -> float:
-        """Student-t inflation for the degrees of freedom of the noise estimate λ."""
+        """Student-t inflation for the degrees of freedom of the noise estimates λ and ι (the
+        relative variances of the two add)."""
         return self.scale.factor
 
     def start(self, sigma_meas: float, frames: tuple[int, ...]) -> None:
@@ -310,16 +312,21 @@ class Uncertainty:
         self.errors["kf"].propagate((ratio, gk, 0.0, 1.0), (0.0, 0.0), ratio, qz, qb_kf)
 
     def process_weights(self) -> tuple[float, float]:
-        """(w_z, w_b): intensities of the ln z and b random walks. The size invariant's drift
-        rate (DriftRate) once it is estimated, with no separate b walk (on a rigid target any
-        disturbance of ż = −ρz shows in the size invariant, which q̂ already carries); the
-        Kalman filter's (σ_ρ², σ_b²) before that, and always with ``process_noise = "kf"``.
-        Applied to every estimator's whole history (ErrorCovariance)."""
+        """(w_z, w_b): intensities of the ln z and b random walks. The Kalman filter's
+        (σ_ρ², σ_b²) until ``drift_min_bursts`` size measurements have been seen (and always
+        with ``process_noise = "kf"``); none after (``"data"``): on a rigid target whatever makes
+        ``ż = −ρz`` drift from the truth shows in the size invariant as a slow measurement error,
+        which ι already counts (docs/estimation.md §18); the size invariant's random-walk rate
+        q̂ (DriftRate) with ``"drift"`` (§14). Applied to every estimator's whole history
+        (ErrorCovariance)."""
         n = self.noise
-        q = self.drift.rate
-        if q is None or self.adapt.process_noise == "kf":
+        mode = self.adapt.process_noise
+        if mode == "kf" or self._sizes < self.adapt.drift_min_bursts:
             return n.sigma_rho**2, n.sigma_b**2
-        return q, 0.0
+        if mode == "drift":
+            q = self.drift.rate
+            return (n.sigma_rho**2, n.sigma_b**2) if q is None else (q, 0.0)
+        return 0.0, 0.0
 
     def _set_weights(self) -> None:
         w = self.process_weights()
@@ -343,7 +350,10 @@ class Uncertainty:
         last, self._last_size = self._last_size, (log_size, rel_sigma_fit, frames)
         corr_now = 0.0 if last is None else shared_frame_correlation(last[2], frames)
         self.slow.update(log_size, rel_sigma_fit, corr_now)
-        self.drift.update(t, log_size, rel_sigma_fit)
+        if math.isfinite(log_size) and rel_sigma_fit > 0:
+            self._sizes += 1
+        if self.adapt.process_noise == "drift":  # its least squares only where it is used
+            self.drift.update(t, log_size, rel_sigma_fit)
         if last is not None:
             prev, prev_sigma, prev_frames = last
             corr = shared_frame_correlation(prev_frames, frames)
