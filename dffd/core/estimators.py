@@ -65,6 +65,8 @@ class EstimatorBank:
         self.cf2_size: float | None = cfg.cf2_nominal_size_m
         self.n_accepted = 0
         self.initialised = False
+        self._handed_over = False  # the start-up seeding has ended (see _seeding)
+        self._seed_cost: float | None = None  # the KF's error cost at the previous burst
 
     def set_known_size(self, meters: float | None) -> None:
         """Set (enables CF1, restarted) or clear the target's known size."""
@@ -156,11 +158,34 @@ class EstimatorBank:
             innov = y_now - (self.kf.z or y_now)
             kf_sigma = self.unc.measurement(innov, sigma_now, self.kf.p, m.frame_indices)
             self.kf.update(y_now, kf_sigma)
-        if self.n_accepted <= cfg.warmup_bursts:
+        if self._seeding(cfg.warmup_bursts):
             self._hand_over(y_now)
 
+    def _seeding(self, count: int | None) -> bool:
+        """Whether this burst still seeds the fixed-gain filters from the KF (start-up).
+
+        With a ``count``, the first ``count`` accepted bursts. Without (the default), while the
+        KF's error still costs the LPV less than at the previous burst: an error ``[e_z, e_b]``
+        handed to the LPV adds ``(e_z² + e_b²/k2)/(2 k1)`` of integrated squared depth error
+        (the Gramian of its fixed error dynamics ``[[−k1, 1], [−k2, 0]]``), so seeding from the KF
+        pays while the KF's covariance still shrinks in that measure; once it does not, the KF
+        has converged and seeding only passes its noise on (docs/estimation.md §18).
+        """
+        if count is not None:
+            return self.n_accepted <= count
+        if self._handed_over:
+            return False
+        p = self.unc.kf_covariance()
+        g = self.lpv_gains
+        cost = (p[0] + p[3] / g.k2) / (2.0 * g.k1_0)
+        last, self._seed_cost = self._seed_cost, cost
+        if last is not None and cost >= last:
+            self._handed_over = True
+            return False
+        return True
+
     def _hand_over(self, y_now: float) -> None:
-        """Seed the fixed-gain filters from the KF's estimate (start-up, see ``warmup_bursts``)."""
+        """Seed the fixed-gain filters from the KF's estimate (start-up, see ``_seeding``)."""
         z0 = self.kf.z if self.kf.z is not None else y_now
         b0 = self.kf.b if self.kf.b is not None else 0.0
         self.cf1.reset(z0)

@@ -115,13 +115,12 @@ class PipelineConfig:
     cf2_nominal_size_m: float | None = None  # None: mean of the first size measurements
     cf2_size_bursts: int = 10  # ... over this many accepted bursts, then frozen (paper: fixed R)
     # Start-up hand-over: the fixed-gain filters (CF1, CF2, LPV) are seeded from the KF (the LPV
-    # with both of its states, which mean the same as the KF's) at each of the first accepted
-    # bursts, while the KF's covariance converges; a fixed-gain observer with the narrow steady
-    # bandwidth would need several 1/λ ≈ 8 s to forget a start-up error. Rolling bursts come at
-    # ~2.2 Hz, so 20 bursts ≈ 9 s (swept 8/12/20/30/60 on the five scenarios with hil run
-    # --fast after the σ_v re-measurement: LPV ss std static 55/7.1/5.0/4.9/5.1 mm;
-    # docs/estimation.md §7).
-    warmup_bursts: int = 20
+    # with both of its states, which mean the same as the KF's) at each accepted burst while the
+    # KF converges; a fixed-gain observer with the narrow steady bandwidth would need several
+    # 1/λ ≈ 8 s to forget a start-up error. None: online, while the KF's error still costs the
+    # LPV less than at the previous burst (EstimatorBank._seeding, docs/estimation.md §18); a
+    # number: that many accepted bursts (20 before §18, swept on our simulator in §7).
+    warmup_bursts: int | None = None
     # Effective time of a depth measurement relative to the mean exposure mid-time of its frames
     # (z_m equals z(t_b + τ)): this fixed part (0: the exposure timing) plus τ̂ estimated online
     # from the innovations (noise_adapt; docs/estimation.md §9). It was a constant 0.03 s fitted

@@ -401,6 +401,12 @@ class Uncertainty:
         )
         return probe.innovation_variance()
 
+    def kf_covariance(self) -> tuple[float, float, float, float]:
+        """The KF's [z, b] error covariance (row-major) at the current process noise."""
+        self._set_weights()
+        p = self.errors["kf"].total()
+        return float(p[0, 0]), float(p[0, 1]), float(p[1, 0]), float(p[1, 1])
+
     def hand_over(self) -> None:
         """The fixed-gain filters were seeded from the KF: they inherit its error covariance."""
         for name in FIXED_GAIN:
