@@ -1,4 +1,4 @@
-"""The estimator bank's start-up hand-over (dffd.core.estimators, docs/estimation.md §18)."""
+"""The estimator bank's start-up hand-over (dffd.core.estimators, docs/estimation.md §19)."""
 
 from __future__ import annotations
 

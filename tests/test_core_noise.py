@@ -294,7 +294,7 @@ def test_published_sigma_is_honest_on_gaussian_bursts_of_unknown_scale() -> None
     noise, no process noise once the size invariant's statistics exist) make the published σ
     honest on Gaussian burst errors twice the stated σ: 2σ covers 93-97 % of the LPV's errors
     over many independent runs (0.945, NEES 1.05), and the KF's at most 99 % (0.987: ι is the
-    long-run factor of a long average, and the KF's memory is short; docs/estimation.md §18).
+    long-run factor of a long average, and the KF's memory is short; docs/estimation.md §19).
     Without the debiasing of 1/ι̂ the LPV's fell to 0.926 (NEES 1.23) once q̂'s clipped noise
     no longer widened it."""
     rng = np.random.default_rng(17)
@@ -349,7 +349,7 @@ def test_slow_error_factor_is_corrected_for_its_own_noise(bursts: int) -> None:
     """On white errors (true ι = 1) ι acts from the 12th burst, its lags a third of the bursts,
     and at every window length the mean of 1/ι̂ — ι scales a variance, so 1/ι̂ is what a NEES
     sees — is within 1 ± 0.15 (§17's correction ι̂ (1 + r): E[1/ι̂] 1.18–1.36, a σ too small on
-    average; without any: 1.45–1.9); ι̂ itself is ≥ 1 on average (docs/estimation.md §18)."""
+    average; without any: 1.45–1.9); ι̂ itself is ≥ 1 on average (docs/estimation.md §19)."""
     rng = np.random.default_rng(23)
     cfg = NoiseAdaptConfig(slow_error_min=0.01, slow_error_max=100.0)
     factors = []

@@ -169,7 +169,7 @@ class EstimatorBank:
         handed to the LPV adds ``(e_z² + e_b²/k2)/(2 k1)`` of integrated squared depth error
         (the Gramian of its fixed error dynamics ``[[−k1, 1], [−k2, 0]]``), so seeding from the KF
         pays while the KF's covariance still shrinks in that measure; once it does not, the KF
-        has converged and seeding only passes its noise on (docs/estimation.md §18).
+        has converged and seeding only passes its noise on (docs/estimation.md §19).
         """
         if count is not None:
             return self.n_accepted <= count

@@ -81,7 +81,7 @@ class NoiseAdaptConfig:
     drift_min_bursts: int = 30
     # The σ propagation's process noise: the Kalman filter's σ_ρ, σ_b until drift_min_bursts size
     # measurements, then "data": none (the size invariant's wander is a slow measurement error,
-    # which ι counts; docs/estimation.md §18), "drift": DriftRate's q̂ (§14, §17; it counted that
+    # which ι counts; docs/estimation.md §19), "drift": DriftRate's q̂ (§14, §17; it counted that
     # wander a second time); "kf": the Kalman filter's throughout (before §14). The Kalman filter
     # itself keeps its own noise either way.
     process_noise: ProcessNoise = "data"
@@ -91,7 +91,7 @@ class NoiseAdaptConfig:
     # estimate is bias-corrected for its own noise (SlowErrors), without which a two-sided ι
     # made the σ overconfident on white bursts (NEES 1.24).
     slow_error_min: float = 0.25
-    # ι acts from this many bursts on (33 before docs/estimation.md §18), its lags a third of
+    # ι acts from this many bursts on (33 before docs/estimation.md §19), its lags a third of
     # the bursts seen (at most slow_error_lags): 12 bursts give 3 lags, which see the shared
     # frame's lag-1 correlation and the closed loop's negative ones at lags 2-3; from 9 bursts
     # the debiased 1/ι̂ is 10-20 % low on white errors, from 12 within 8 %
@@ -170,7 +170,7 @@ class SlowErrors:
     ``1/ι̂``. The factor is ``ι̂ (1 + r)/(1 − r/2)``, which makes E[1/ι̂] ≈ 1 on white errors
     (0.86–1.07 from 9 to 60 bursts; E[ι̂] 1.2–1.4, the price of estimating it; §17's ``ι̂ (1 + r)``
     gave E[1/ι̂] 1.18–1.36). The lags grow with the bursts seen (``n/3 − 1``, at most ``lags``),
-    so ι acts from ``slow_error_min_bursts`` on (docs/estimation.md §18); bounded to
+    so ι acts from ``slow_error_min_bursts`` on (docs/estimation.md §19); bounded to
     ``[slow_error_min, slow_error_max]``.
     """
 
@@ -200,7 +200,7 @@ class SlowErrors:
         lrv = gamma[0] + 2.0 * sum((1.0 - j / (lags + 1)) * gamma[j] for j in range(1, lags + 1))
         model = gamma[0] * (1.0 + 2.0 * corr * (1.0 - 1.0 / (lags + 1)))
         # the Bartlett estimate's bias and noise (relative variance r): a variance scaled by ι̂
-        # is seen through 1/ι̂, which this makes unbiased (docs/estimation.md §18)
+        # is seen through 1/ι̂, which this makes unbiased (docs/estimation.md §19)
         rel_var = 4.0 * (lags + 1) / (3.0 * n)
         debias = (1.0 + rel_var) / (1.0 - 0.5 * rel_var)
         self.factor = min(max(debias * lrv / model, c.slow_error_min), c.slow_error_max)

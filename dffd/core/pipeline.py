@@ -118,8 +118,8 @@ class PipelineConfig:
     # with both of its states, which mean the same as the KF's) at each accepted burst while the
     # KF converges; a fixed-gain observer with the narrow steady bandwidth would need several
     # 1/λ ≈ 8 s to forget a start-up error. None: online, while the KF's error still costs the
-    # LPV less than at the previous burst (EstimatorBank._seeding, docs/estimation.md §18); a
-    # number: that many accepted bursts (20 before §18, swept on our simulator in §7).
+    # LPV less than at the previous burst (EstimatorBank._seeding, docs/estimation.md §19); a
+    # number: that many accepted bursts (20 before §19, swept on our simulator in §7).
     warmup_bursts: int | None = None
     # Effective time of a depth measurement relative to the mean exposure mid-time of its frames
     # (z_m equals z(t_b + τ)): this fixed part (0: the exposure timing) plus τ̂ estimated online

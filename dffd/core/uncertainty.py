@@ -316,7 +316,7 @@ class Uncertainty:
         (σ_ρ², σ_b²) until ``drift_min_bursts`` size measurements have been seen (and always
         with ``process_noise = "kf"``); none after (``"data"``): on a rigid target whatever makes
         ``ż = −ρz`` drift from the truth shows in the size invariant as a slow measurement error,
-        which ι already counts (docs/estimation.md §18); the size invariant's random-walk rate
+        which ι already counts (docs/estimation.md §19); the size invariant's random-walk rate
         q̂ (DriftRate) with ``"drift"`` (§14). Applied to every estimator's whole history
         (ErrorCovariance)."""
         n = self.noise
