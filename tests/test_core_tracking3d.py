@@ -239,21 +239,30 @@ def test_mmae_probabilities_survive_extreme_likelihoods() -> None:
 
 
 def test_compiled_mmae_probabilities_are_the_python_ones_bit_for_bit() -> None:
-    # the unit-size update kernel computes the probabilities (one call a frame): the same
-    # float operations in the same order as mmae_probabilities
+    # the unit-size update kernel computes the probabilities after its update (one call a
+    # frame): the same float operations in the same order as mmae_probabilities
     from dffd.core import kernels_track
 
     rng = np.random.default_rng(3)
-    cases = [
-        (np.array([0.5, 0.3, 0.2]), np.log([0.1, 0.4, 0.001]), 0.0),
-        (np.full(3, 1 / 3), np.array([-1e5, -1e5 - 50.0, -3e5]), 1e-3),
-        (np.array([0.0, 0.6, 0.4]), np.array([1.0, -2.0, 0.5]), 1e-3),
-    ]
-    cases += [(rng.dirichlet(np.ones(3)), rng.normal(0, 30, 3), 1e-3) for _ in range(200)]
-    for prior, loglik, floor in cases:
-        out = np.empty(3)
-        kernels_track.mmae_probabilities(prior, loglik, floor, out)
-        assert out.tolist() == mmae_probabilities(prior, loglik, floor).tolist()
+    d = 11
+    for k in range(200):
+        xs = rng.normal(0.0, 1.0, (3, d))
+        xs[:, d - 1] = rng.uniform(0.02, 0.05, 3)  # the size R
+        a = rng.normal(0.0, 0.3, (3, d, d))
+        ps = np.ascontiguousarray(a @ a.transpose(0, 2, 1) + 1e-2 * np.eye(d))
+        m = rng.normal(0.0, 30.0, 3)
+        b = rng.normal(0.0, 1.0, (3, 3))
+        sigma_m = np.ascontiguousarray(b @ b.T + np.eye(3))
+        mu = rng.dirichlet(np.ones(3))
+        if k % 7 == 0:
+            mu[k % 3] = 0.0  # a dead model: log μ = −∞
+        xs_out, ps_out = np.empty_like(xs), np.empty_like(ps)
+        loglik, mu_out = np.empty(3), np.empty(3)
+        status = kernels_track.track_unit_update(
+            xs, ps, m, sigma_m, mu, 1e-3, xs_out, ps_out, loglik, mu_out
+        )
+        assert status == 0
+        assert mu_out.tolist() == mmae_probabilities(mu, loglik, 1e-3).tolist()
 
 
 def test_markov_matrix_is_the_exact_chain_transition() -> None:

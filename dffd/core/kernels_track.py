@@ -34,7 +34,6 @@ from dffd.core.kernel_layout import (
 
 __all__ = [
     "focus_cost",
-    "mmae_probabilities",
     "track_combine",
     "track_predict",
     "track_size_update",
@@ -250,30 +249,6 @@ def track_predict(  # noqa: PLR0917 - numba kernels take positional arguments
         _symmetrise(po)
 
 
-@_jit(f"void({_V}, {_V}, float64, {_V})")
-def mmae_probabilities(
-    prior: FloatArray, log_likelihoods: FloatArray, floor: float, out: FloatArray
-) -> None:
-    """Bayes' rule in log space, ``μ_j ∝ μ_j L_j``, every μ raised to ``floor``, into ``out``
-    (:func:`dffd.core.tracking3d.mmae_probabilities`'s float operations, in its order)."""
-    n = prior.shape[0]
-    top = -math.inf
-    for j in range(n):
-        v = math.log(prior[j]) + log_likelihoods[j] if prior[j] > 0.0 else -math.inf
-        out[j] = v
-        top = max(top, v)
-    total = 0.0
-    for j in range(n):
-        out[j] = math.exp(out[j] - top)
-        total += out[j]
-    norm = 0.0
-    for j in range(n):
-        out[j] = max(out[j] / total, floor)
-        norm += out[j]
-    for j in range(n):
-        out[j] = out[j] / norm
-
-
 @_jit(f"int64({_M}, {_T}, {_V}, {_M}, {_V}, float64, {_M}, {_T}, {_V}, {_V})")
 def track_unit_update(  # noqa: PLR0917 - numba kernels take positional arguments
     xs: FloatArray,
@@ -291,7 +266,7 @@ def track_unit_update(  # noqa: PLR0917 - numba kernels take positional argument
 
     ``H = [I₃ 0 … −m]``, noise ``R̂² Σ_m``; the innovation covariance symmetrised and inverted by
     cofactors; ``loglik[j]`` the Gaussian log-likelihood of model j's innovation; ``mu_out``
-    the models' probabilities after it (:func:`mmae_probabilities` of ``mu`` with ``floor``;
+    the models' probabilities after it (``tracking3d.mmae_probabilities`` of ``mu`` with ``floor``;
     ``mu`` itself for a bank of one). Returns 0, or 1 when an innovation covariance is not
     positive definite (the outputs are then undefined).
     """
@@ -359,10 +334,27 @@ def track_unit_update(  # noqa: PLR0917 - numba kernels take positional argument
                     w[i, 0] * gain[k, 0] + w[i, 1] * gain[k, 1] + w[i, 2] * gain[k, 2]
                 )
         _symmetrise(po)
-    if xs.shape[0] > 1:
-        mmae_probabilities(mu, loglik, floor, mu_out)
-    else:
+    n = xs.shape[0]
+    if n == 1:
         mu_out[:] = mu
+        return 0
+    # The MMAE probabilities (tracking3d.mmae_probabilities' float operations, in its order):
+    # Bayes' rule in log space, μ_j ∝ μ_j L_j, every μ raised to the floor.
+    top = -math.inf
+    for j in range(n):
+        lp = math.log(mu[j]) + loglik[j] if mu[j] > 0.0 else -math.inf
+        mu_out[j] = lp
+        top = max(top, lp)
+    total = 0.0
+    for j in range(n):
+        mu_out[j] = math.exp(mu_out[j] - top)
+        total += mu_out[j]
+    norm = 0.0
+    for j in range(n):
+        mu_out[j] = max(mu_out[j] / total, floor)
+        norm += mu_out[j]
+    for j in range(n):
+        mu_out[j] = mu_out[j] / norm
     return 0
 
 
@@ -443,53 +435,45 @@ def track_combine(
 
 # -- the focus cost (2) of a frame (dffd.core.focus.focus_cost) ---------------------------------
 @_jit(f"float64({_V}, int64, int64)")
-def _pairwise_block(a: FloatArray, lo: int, n: int) -> float:
-    """NumPy's pairwise sum of ``a[lo:lo + n]`` for ``n`` <= 128: a plain loop below 8, else
-    eight running sums, combined pairwise, then the rest."""
-    if n < 8:
-        res = 0.0
-        for i in range(n):
-            res += a[lo + i]
-        return res
-    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
-    i = 8
-    while i < n - (n % 8):
-        b = lo + i
-        r0 += a[b]
-        r1 += a[b + 1]
-        r2 += a[b + 2]
-        r3 += a[b + 3]
-        r4 += a[b + 4]
-        r5 += a[b + 5]
-        r6 += a[b + 6]
-        r7 += a[b + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[lo + i]
-        i += 1
-    return float(res)
-
-
-@_jit(f"float64({_V}, int64, int64)")
 def _pairwise_sum(a: FloatArray, lo: int, n: int) -> float:
-    """``np.add.reduce(a[lo:lo + n])`` bit for bit: NumPy's pairwise summation (blocks of up
-    to 128, halved above at a multiple of 8: the halving tree evaluated with an explicit stack,
-    left before right), which a plain loop does not reproduce."""
-    if n <= 128:
-        return _pairwise_block(a, lo, n)
+    """``np.add.reduce(a[lo:lo + n])`` bit for bit: NumPy's pairwise summation, which a plain
+    loop does not reproduce. A block of up to 128 values: a plain loop below 8, else eight
+    running sums, combined pairwise, then the rest; above 128 the halving tree (at a multiple
+    of 8), evaluated here with an explicit stack, left before right."""
     f_lo = np.empty(64, dtype=np.int64)
     f_n = np.empty(64, dtype=np.int64)
-    f_stage = np.empty(64, dtype=np.int64)
+    f_stage = np.zeros(64, dtype=np.int64)
     values = np.empty(64)
     sp, vp = 1, 0
-    f_lo[0], f_n[0], f_stage[0] = lo, n, 0
+    f_lo[0], f_n[0] = lo, n
     while sp > 0:
         top = sp - 1
         seg_lo, seg_n = f_lo[top], f_n[top]
         if seg_n <= 128:
-            values[vp] = _pairwise_block(a, seg_lo, seg_n)
+            if seg_n < 8:
+                res = 0.0
+                for i in range(seg_n):
+                    res += a[seg_lo + i]
+            else:
+                r0, r1, r2, r3 = a[seg_lo], a[seg_lo + 1], a[seg_lo + 2], a[seg_lo + 3]
+                r4, r5, r6, r7 = a[seg_lo + 4], a[seg_lo + 5], a[seg_lo + 6], a[seg_lo + 7]
+                i = 8
+                while i < seg_n - (seg_n % 8):
+                    b = seg_lo + i
+                    r0 += a[b]
+                    r1 += a[b + 1]
+                    r2 += a[b + 2]
+                    r3 += a[b + 3]
+                    r4 += a[b + 4]
+                    r5 += a[b + 5]
+                    r6 += a[b + 6]
+                    r7 += a[b + 7]
+                    i += 8
+                res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+                while i < seg_n:
+                    res += a[seg_lo + i]
+                    i += 1
+            values[vp] = res
             vp += 1
             sp -= 1
             continue
