@@ -50,6 +50,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
     runs = []
+    load_before = list(os.getloadavg())
+    print(f"load average {load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f}")
     for _ in range(args.repeat):
         run = measure_start(fresh_kernel_cache=args.fresh_kernel_cache)
         runs.append(run)
@@ -58,10 +60,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"{_s(run['first_depth_s'])} s (z {_s(run['first_depth_m'])} m, truth "
             f"{_s(run['first_depth_truth_m'])} m){' ' + run['error'] if run['error'] else ''}"
         )
+        # where the time between them went: each burst the core closed, when and how it fitted
+        for t, what in run["events"]:
+            if what.startswith("burst"):
+                print(f"  {t:6.2f} s  {what}")
     result: dict[str, Any] = {
         "repeat": args.repeat,
         "fresh_kernel_cache": args.fresh_kernel_cache,
         "runs": runs,
+        "load_average_before": load_before,
         "load_average": list(os.getloadavg()),
     }
     for key in ("first_estimate_s", "first_depth_s"):

@@ -337,6 +337,46 @@ def test_no_burst_is_fitted_across_a_depth_jump() -> None:
     assert not run(5.0).burst_rejections
 
 
+@pytest.mark.parametrize("end_offset", [1500, 3000])
+def test_a_tracking_frame_held_at_a_bracket_end_is_no_depth_jump(end_offset: int) -> None:
+    """The scheduler may hold the lens at a bracket's end for the frame that closes the burst
+    (before the first depth). That frame is tagged ``track`` but defocused, and its size is off
+    like a burst frame's: the burst is fitted and applied, not dropped as a depth jump; the
+    same frame at the best focus with the target 10 % nearer still is one."""
+
+    def run(z_close: float, close_offset: int) -> tuple[Pipeline, list[Measurement]]:
+        pipe = Pipeline(SERVICE, LENS)
+        c = LENS.counts_for_depth(5.0)
+        k = 0
+        out: list[Measurement] = []
+
+        def shot(z: float, counts: int, tag: FrameTag | None = None) -> None:
+            nonlocal k
+            frame, track = _frame(k, k / 30, z, counts)
+            k += 1
+            m = pipe.process(frame, tag or track).measurement
+            if m is not None:
+                out.append(m)
+
+        for _ in range(3):
+            shot(5.0, c)
+        for bid in (1, 2):  # the first burst gives a depth; the second closes at its far end
+            for slot, dc in enumerate((end_offset, 0, -end_offset)):
+                shot(5.0, c + dc, FrameTag("burst", c + dc, 0.0, 0.0, (bid, slot)))
+            if bid == 1:
+                shot(5.0, c)
+        for _ in range(2):  # the closing frame and one more, held where the burst ended
+            shot(z_close, c + close_offset)
+        return pipe, out
+
+    pipe, out = run(5.0, -end_offset)
+    assert not pipe.burst_rejections
+    assert [m.accepted for m in out] == [True, True]
+    assert out[1].z_m == pytest.approx(5.0, rel=0.05)
+    pipe, out = run(4.5, 0)
+    assert pipe.burst_rejections == {"depth jump during the burst": 1}
+
+
 def test_size_measurement_is_the_applied_bursts_size_on_its_frame_only() -> None:
     """``Pipeline.size_measurement`` (the 3D tracker's size input): ``(R, σ_R)`` on the frame
     that applied an accepted burst, None on every other frame."""

@@ -100,6 +100,8 @@ class Harness:
     fail_moves: set[int] = field(default_factory=set)  # move ids that time out
     plan: tuple[int, int, int] | None = PLAN
     sigma: float | None = None
+    # σ the core reports once a burst has closed (its first depth); None: ``sigma`` throughout.
+    sigma_after_burst: float | None = None
     centroid: tuple[float, float] | None = None
     phase: float = 0.0123  # exposure mid of frame 0
 
@@ -181,6 +183,8 @@ class Harness:
             self.check(index, mid, tag)
             counts = tag.focus_counts if tag.focus_counts is not None else 5000
             plan = self.plan
+            if self.sigma_after_burst is not None and s.stats.bursts_completed > 0:
+                self.sigma = self.sigma_after_burst
             s.on_estimate(
                 t,
                 sigma_m=self.sigma,
@@ -790,9 +794,10 @@ def test_rate_limit_of_a_bracket_with_unequal_sides() -> None:
 
 @pytest.mark.parametrize("every", [1, 2, 4])
 def test_rolling_tags_alternate_ends_and_reach_the_rate_limit(every: int) -> None:
+    # The steady state: a depth known from the start (the start-up is tested below).
     cfg = replace(ROLL, burst_every_frames=every)
     plan = (2000, 5000, 8000)
-    h = Harness(cfg, plan=plan)
+    h = Harness(cfg, plan=plan, sigma=0.01)
     h.run(5.0)
     assert h.wrong == []
     ends = [(index, tag) for index, _, tag in h.tags if tag.role == "burst"]
@@ -828,26 +833,76 @@ def test_rolling_plan_survives_transit_frames_and_end_uses_the_latest_plan() -> 
     assert h.wrong == []
 
 
-def test_the_first_rolling_burst_opens_at_the_end_nearest_the_lens() -> None:
-    # No depth yet (σ unknown) and the lens away from the plan: straight to the nearest end, then
-    # the middle, then the other end — not the middle first (one dwell and a long move saved).
-    h = Harness(ROLL, plan=(6000, 9000, 12000))
-    h.run(2.0)
-    assert h.wrong == []
-    tagged = [
-        (mid, tag)
-        for _, mid, tag in h.tags
+def _measured(h: Harness) -> list[tuple[int, float, FrameTag]]:
+    """The frames at a known focus away from the initial one, in order."""
+    return [
+        (index, mid, tag)
+        for index, mid, tag in h.tags
         if tag.role in ("burst", "track") and tag.focus_counts != ROLL.initial_focus_counts
     ]
-    first_mid, first = tagged[0]
-    assert first.role == "burst"
-    assert first.focus_counts == 6000
-    ends = [(mid, tag.focus_counts) for mid, tag in tagged if tag.role == "burst"]
-    assert [c for _, c in ends[:3]] == [6000, 12000, 6000]
-    middles = [mid for mid, tag in tagged if tag.role == "track" and tag.focus_counts == 9000]
-    assert first_mid < middles[0] < ends[1][0]
-    assert h.sched.stats.rolling_openings == 1
+
+
+@pytest.mark.parametrize("far_side", [-1, 1])
+def test_the_first_bracket_runs_from_its_near_end_to_its_far_end_and_holds_there(
+    far_side: int,
+) -> None:
+    # No depth yet (σ unknown) and the lens away from the plan: straight to the near end, one
+    # frame at the middle, then the far end — and the lens stays there for the frame that closes
+    # the burst in the core, until the core's feedback on it is in.
+    cfg = replace(ROLL, far_focus_side=far_side)
+    near, far = (12000, 6000) if far_side < 0 else (6000, 12000)
+    h = Harness(cfg, plan=(6000, 9000, 12000), sigma_after_burst=0.2)
+    h.run(3.0)
+    assert h.wrong == []
+    measured = _measured(h)
+    ends = [(i, tag.focus_counts) for i, _, tag in measured if tag.role == "burst"]
+    assert [c for _, c in ends[:3]] == [near, far, near]
+    first, second = ends[0][0], ends[1][0]
+    middles = [i for i, _, tag in measured if first < i < second]
+    assert middles == [middles[0]]  # one middle frame before the first depth
+    assert measured[[i for i, _, _ in measured].index(middles[0])][2].focus_counts == 9000
+    # The frames after the far end are tracking frames there (the first closes the burst in the
+    # core), and the lens leaves only once the first of them has been delivered and fed back.
+    after = [(i, mid, tag) for i, mid, tag in h.tags if second < i <= second + 2]
+    assert [(tag.role, tag.focus_counts) for _, _, tag in after] == [("track", far)] * 2
+    delivered = after[0][1] + cfg.exposure / 2 + cfg.capture_latency_frames / cfg.fps
+    leave = next(t for t, a in h.actions if isinstance(a, FocusMove) and t > after[0][1])
+    assert leave >= delivered
+    # The lens holds at the first closing end after the depth too (the first depth of a far
+    # target), not at later ones (the rolling triangle goes on).
+    tags = {i: tag for i, _, tag in h.tags}
+    far_ends = [i for i, c in ends if c == far]
+    assert len(far_ends) >= 3
+    held = [(tags[i + 1].role, tags[i + 1].focus_counts) == ("track", far) for i in far_ends]
+    assert held[:3] == [True, True, False]
     assert h.sched.stats.bursts_completed >= 2
+
+
+def test_a_start_up_bracket_without_a_depth_opens_again_where_the_lens_holds() -> None:
+    # The first burst gave no depth (σ still unknown): the next sequence opens at the far end
+    # where the lens already is — no move, the frame after the hold is claimed there.
+    h = Harness(ROLL, plan=(6000, 9000, 12000))
+    h.run(2.5)
+    assert h.wrong == []
+    ends = [tag.focus_counts for _, _, tag in _measured(h) if tag.role == "burst"]
+    assert ends[:4] == [12000, 6000, 6000, 12000]
+    moves = [a.counts for _, a in h.actions if isinstance(a, FocusMove)]
+    assert moves[:5] == [5000, 12000, 9000, 6000, 9000]
+
+
+def test_a_hold_without_feedback_ends_by_its_deadline() -> None:
+    # The capture loses every frame after the far end: no feedback ever comes, yet the hold ends
+    # by its deadline (the scheduler asks to be woken for it) and the lens goes on.
+    h = Harness(ROLL, plan=(6000, 9000, 12000), drop=set(range(27, 1000)))
+    h.run(2.0)
+    assert h.wrong == []
+    far = [mid for _, mid, tag in h.tags if tag.role == "burst" and tag.focus_counts == 6000]
+    assert len(far) == 1
+    later = [(t, a.counts) for t, a in h.actions if isinstance(a, FocusMove) and t > far[0]]
+    assert later
+    t_next, _ = later[0]
+    latency = (ROLL.capture_latency_frames + 4) / ROLL.fps + ROLL.exposure
+    assert t_next <= far[0] + latency + 0.01
 
 
 def test_with_a_depth_a_retarget_refocuses_the_middle_first() -> None:

@@ -84,6 +84,11 @@ SIZE_EDGE_WIDTHS = 3.0
 # A size off the track is a jump only within this time of the last used size (s): further, the
 # filtered rate's prediction is too uncertain (a rolling bracket's track frames are ~0.2 s apart).
 SIZE_JUMP_MAX_GAP_S = 0.5
+# A tracking frame is tested for a jump only within this blur radius (px) of the predicted
+# depth's sharp setting: half the bracket ends' blur (PlanConfig.outer_blur_px, 3 px), whose
+# sizes were 3-35 % off. Tracking frames sit at the plan's middle (< 0.75 px: the scheduler
+# re-focuses beyond a quarter of a bracket step); a frame held at a bracket end is not one.
+SIZE_JUMP_MAX_BLUR_PX = 1.5
 # The whole-frame acquisition search runs on a copy this many times smaller per axis (area
 # averaged): it was ~70 % of an acquisition frame's CPU at full size on 640×480 (blur, Otsu and
 # contours over the whole frame); ContourTracker.start refines the coarse polygon at full size.
@@ -457,7 +462,7 @@ class Pipeline:
         f_img = self._f_img if self._f_img is not None else self.lens.focal_length_mm
         dt = 0.0 if self._prev is None else t - self._prev[0]
         s_meas = obs.r_px * self.lens.pixel_pitch_mm / f_img  # = R / z
-        if self._prev is not None and dt > 0 and not self._size_usable(obs, tag.role, s_meas, dt):
+        if self._prev is not None and dt > 0 and not self._size_usable(obs, tag, s_meas, dt):
             # No size from this frame (too blurred, or off the track: _size_usable): the size
             # is held, and the next measured size telescopes the ratio over the gap.
             s = self._prev[1]  # held: extrapolating on the rate drifted (11 % on start-up)
@@ -509,15 +514,17 @@ class Pipeline:
         self._sizes.clear()
         self._diff = Differentiator(self.config.differentiator_omega)
 
-    def _size_usable(self, obs: BoundaryObservation, role: str, s: float, dt: float) -> bool:
+    def _size_usable(self, obs: BoundaryObservation, tag: FrameTag, s: float, dt: float) -> bool:
         """Whether the frame's size ``s`` is used.
 
         Not when its edge profile (``edge_sigma_px``, the log-parabola width of the gradient
         peak) does not fit ``SIZE_EDGE_WIDTHS`` times within the normal lines, where the
         curvature correction of r fails (docs/estimation.md §11). Not when ``ln s`` is off the
         filtered rate's prediction by more than ``size_jump_ln`` on a burst or transit frame
-        (blurred frames of the brackets were 3-35 % off); on a tracking frame (at the best focus
-        of a known depth) that is a depth jump (:meth:`_on_size_jump`), and the size is used.
+        (blurred frames of the brackets were 3-35 % off), nor on a tracking frame defocused by
+        more than ``SIZE_JUMP_MAX_BLUR_PX`` for the predicted depth (one held at a bracket's
+        end: :meth:`_defocused`); on a tracking frame at the best focus of a known depth that
+        is a depth jump (:meth:`_on_size_jump`), and the size is used.
         """
         w = obs.edge_sigma_px
         if math.isfinite(w) and SIZE_EDGE_WIDTHS * w > self.config.search_px:
@@ -530,10 +537,22 @@ class Pipeline:
         off = math.log(s) - (math.log(self._prev[1]) + self._diff_rate * gap)
         if abs(off) <= self.config.size_jump_ln:
             return True
-        if role != "track" or not self._bank.initialised:
+        if tag.role != "track" or not self._bank.initialised or self._defocused(tag):
             return False
         self._on_size_jump(obs, off)
         return True
+
+    def _defocused(self, tag: FrameTag) -> bool:
+        """The frame's focus setting blurs the target at the predicted depth by more than
+        ``SIZE_JUMP_MAX_BLUR_PX`` (its size is then as off as a bracket end's, not a jump)."""
+        z = self._depth(self.config.best)
+        if tag.focus_counts is None or z is None or not z > 0:
+            return False
+        lens = self.lens
+        n_f = lens.f_number if lens.f_number is not None else self.config.plan.default_f_number
+        v_sharp = lens.v_from_depth(max(z, 2 * lens.focal_length_mm / 1000.0))
+        blur = lens.blur_radius_px(self._settings.v_mm(tag.focus_counts), v_sharp, n_f)
+        return blur > SIZE_JUMP_MAX_BLUR_PX
 
     def _log_size_ratios(self, times: list[float], t_mid: float) -> list[float] | None:
         """ln(s(t_i)/s(t_mid)) for burst frames, from the line through the sizes of the frames

@@ -43,6 +43,10 @@ class SchedulerConfig:
     # The camera accepts one command per video field (docs/design.md §6: ~1V, 16.7 ms at 60 Hz).
     command_slot_s: float = 1.0 / 60.0
     initial_focus_counts: int | None = None
+    # The side of the focus counts that focuses farther: −1 when lower counts focus farther
+    # (VISCA cameras: the EVI-D100's 0x1000 is infinity), +1 otherwise. Before the first depth
+    # the bracket over the working range ends at its far end (docs/design.md §5.3).
+    far_focus_side: int = -1
     focus_inquiry_interval_s: float = 0.05
     # Pan/tilt.
     pan_tilt_mode: PanTiltMode
@@ -119,6 +123,8 @@ class SchedulerConfig:
             raise ValueError("focus_speed_counts_per_s must be > 0")
         if self.baudrate <= 0:
             raise ValueError(f"baudrate must be > 0 (got {self.baudrate})")
+        if self.far_focus_side not in (1, -1):
+            raise ValueError(f"far_focus_side must be +1 or -1 (got {self.far_focus_side})")
         if self.pan_sign not in (1, -1) or self.tilt_sign not in (1, -1):
             raise ValueError("pan_sign and tilt_sign must be +1 or -1")
         if self.pan_tilt_search_s < 0 or self.pan_tilt_lost_s < 0:

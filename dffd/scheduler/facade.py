@@ -62,6 +62,11 @@ STALL_FRAMES = 3
 # Exposure times of recent transit tags: the estimator's feedback arrives a few frames late at
 # most (capture latency + estimator queue), far fewer than this.
 TRANSIT_HISTORY = 32
+# Start-up holds at the end that closes a bracket once the core reports a depth (σ): the first
+# depth of a far target is the second burst's (the first, full-range one lies outside its
+# bracket and the daemon withholds it), and holding for it publishes it ~0.2 s sooner (lock-step,
+# reference simulator, 8-11 m); later holds would cost the rolling triangle 2-3 frames each.
+HOLDS_AFTER_DEPTH = 1
 
 
 class Scheduler:
@@ -97,6 +102,18 @@ class Scheduler:
         # Rolling bracket: the side of the next end (+1 high counts, −1 low).
         self._rolling_side = -1
         self._last_end_counts: int | None = None  # the last rolling end's focus
+        # Start-up hold (see _hold_at_end): the lens stays at the end that closed the first
+        # bracket until the core's feedback for a frame exposed after ``_hold_after`` arrived,
+        # or until ``_hold_until`` (frames stopped coming).
+        self._hold_after: float | None = None
+        self._hold_until = -math.inf
+        self._hold_ended = False  # a hold just ended: the next re-target may open a sequence
+        self._hold_opens = False  # the hold was before any depth (then _hold_ended is set)
+        # Holds since the core reported a depth (σ), reset while it reports none (start, loss).
+        self._depth_holds = HOLDS_AFTER_DEPTH
+        # The next rolling end opens a sequence in the core: the frames held at the last end are
+        # its tracking frames, so no middle lies between that end and the next one.
+        self._next_end_opens = False
         self._transit_ts: deque[float] = deque(maxlen=TRANSIT_HISTORY)
         # Pan/tilt.
         self._pt = PanTiltHead(config)
@@ -249,6 +266,11 @@ class Scheduler:
         """
         if track_rate_deg_s is not None:
             self._pt.on_track_rate(t, track_rate_deg_s)
+        if self._hold_after is not None and t > self._hold_after:
+            self._hold_after = None  # the frame exposed at the held end has been processed
+            self._hold_ended = self._hold_opens
+        if sigma_m is None:
+            self._depth_holds = 0
         self._sigma = sigma_m
         need = self.config.acquire_stable_frames
         if centroid_px is not None:
@@ -396,12 +418,16 @@ class Scheduler:
             return self._focus_step(now)
         if self._phase == "track":
             assert self._counts is not None
+            if self._holding(now):
+                return None
+            after_hold, self._hold_ended = self._hold_ended, False
             home = self._track_counts
             if home is not None and abs(home - self._counts) > self._retarget_threshold():
-                if self._opens_rolling_here(now):
-                    # Before the first depth: open a sequence at the plan's end nearest the lens
-                    # instead of going to the middle first (saves a middle dwell and the travel
-                    # to the middle; no bracket made of two plans).
+                if self._opens_rolling_here(now, after_hold=after_hold):
+                    # Before the first depth, or on the first bracket's new plan after a hold:
+                    # open a sequence at an end of the plan instead of going to the middle
+                    # first (saves a middle dwell and the travel to the middle; no bracket made
+                    # of two plans).
                     return self._open_rolling(now)
                 # The best focus drifted away from the lens: re-focus the tracking frames.
                 return self._issue_move(home, now, "return_move")
@@ -422,6 +448,10 @@ class Scheduler:
                     return self._retarget_rolling(burst, now)
                 burst.order = (self._plan[-1] if burst.side > 0 else self._plan[0],)
                 self._last_end_counts = burst.order[0]
+            if burst.order[0] == self._counts:
+                # The lens is there already (a sequence opened where a start-up hold left it).
+                self._claim_after(now)
+                return None
             return self._issue_move(burst.order[0], now, "burst_move")
         if self._phase == "burst_dwell":
             burst = self._burst
@@ -433,6 +463,8 @@ class Scheduler:
 
     def _focus_wakeup(self) -> float | None:
         """When the focus machine must be looked at again (None: on the next event)."""
+        if self._phase == "track" and self._move is None and self._hold_after is not None:
+            return self._hold_until
         if self._phase == "track" and self._move is None:
             commit = self._burst_commit_time(None)
             if commit is not None and self._frames_flowing(commit):
@@ -509,8 +541,10 @@ class Scheduler:
             return max(eligible, latest)
         every = self.config.burst_every_frames
         if self.config.burst_mode == "rolling":
-            # The claimed exposure is the last of the tracking frames at the middle.
-            every = max(1, every) - 1
+            # The claimed exposure is the last of the tracking frames at the middle. Before the
+            # first depth the plan does not change from frame to frame (it spans the working
+            # range): one frame at the middle.
+            every = 0 if self._sigma is None else max(1, every) - 1
         return max(eligible, first + every * self._clock.period)
 
     def _start_burst(self, now: float) -> Action | None:
@@ -526,8 +560,9 @@ class Scheduler:
             order: tuple[int, ...] = (end,)
             burst = Burst(
                 self._next_burst_id, order, tag_slots=(ROLLING_SLOT,), rolling=True,
-                side=-self._rolling_side,
+                side=-self._rolling_side, opening=self._next_end_opens,
             )  # fmt: skip
+            self._next_end_opens = False
         else:
             settings = list(self._plan)
             # Take a planned setting where the lens already is (the tag carries the real counts).
@@ -554,8 +589,9 @@ class Scheduler:
             self._phase = "burst_wait"
         return self._focus_step(now)
 
-    def _opens_rolling_here(self, now: float) -> bool:
-        """Rolling, a plan but no depth yet (σ unknown: a burst is due at once), frames flowing.
+    def _opens_rolling_here(self, now: float, *, after_hold: bool = False) -> bool:
+        """Rolling, a plan but no depth yet (σ unknown: a burst is due at once) or the first plan
+        after a start-up hold (:meth:`_hold_at_end`) whose bracket left the lens, frames flowing.
 
         Then a re-target opens a new sequence at the plan's end nearest the lens. Going to the
         middle first would make the next end close a burst with the previous end, of the older
@@ -563,28 +599,50 @@ class Scheduler:
         dropped (no cost at the far end) or fitted 1.3-4.7 m off for a target at 10 m, and the
         first depth waited for one more end.
         """
-        if self.config.burst_mode != "rolling" or self._plan is None or self._sigma is not None:
+        if self.config.burst_mode != "rolling" or self._plan is None:
+            return False
+        if self._sigma is not None and not (after_hold and self._plan_left_the_lens()):
             return False
         return self._clock.t_ref is not None and self._frames_flowing(now)
 
     def _open_rolling(self, now: float) -> Action | None:
-        """Move straight to the plan's end nearest the lens: the end that opens a sequence."""
+        """Move straight to an end of the plan: the end that opens a sequence.
+
+        Before the first depth, the near end, so that the bracket ends at its far end: the
+        full-range first bracket's vertex falls outside it for targets near its ends (on the
+        reference simulator, lock-step: 1.8, 3 and 5 m inside; 1.5, 8, 10 and 11 m outside), in
+        depth mostly at the far end, and the next bracket is then near the far end, where the
+        lens already is. Otherwise (and when the lens already sits at an end) the end nearest
+        the lens.
+        """
         assert self._plan is not None
         assert self._counts is not None
         lo, hi = self._plan[0], self._plan[-1]
-        side = 1 if abs(hi - self._counts) < abs(lo - self._counts) else -1
+        if self._sigma is None and not self._at_plan_end():
+            # No depth yet: the first bracket spans the working range; it ends at its far end.
+            side = -self.config.far_focus_side
+        else:
+            side = 1 if abs(hi - self._counts) < abs(lo - self._counts) else -1
         self._rolling_side = -side  # the next burst takes the other end
         burst = Burst(
             self._next_burst_id, (hi if side > 0 else lo,), tag_slots=(ROLLING_SLOT,),
             rolling=True, side=side, start_at=now, opening=True,
         )  # fmt: skip
         self._next_burst_id += 1
+        self._next_end_opens = False
         self._burst = burst
         self._bursts.pending.append(burst)
         self._burst_now = False
         self.stats.bursts_started += 1
         self._phase = "burst_wait"
         return self._focus_step(now)
+
+    def _at_plan_end(self) -> bool:
+        """The lens sits at one of the plan's ends (within the snap threshold)."""
+        assert self._plan is not None
+        assert self._counts is not None
+        near = self._snap_threshold()
+        return min(abs(self._plan[0] - self._counts), abs(self._plan[-1] - self._counts)) <= near
 
     def _plan_left_the_lens(self) -> bool:
         """The plan's bracket no longer contains the lens (where the middle frames were taken):
@@ -626,6 +684,8 @@ class Scheduler:
             return self._issue_move(target, now, "burst_move")
         # All slots claimed: back to the tracking focus (the latest plan's centre).
         self._burst = None
+        if self._hold_at_end(burst):
+            return None
         home = self._track_counts if self._track_counts is not None else burst.order[-1]
         assert self._counts is not None
         if abs(home - self._counts) <= self.config.focus_tolerance_counts:
@@ -633,6 +693,48 @@ class Scheduler:
             self._track_from = self._clock.end_of(burst.claims[-1])
             return None
         return self._issue_move(home, now, "return_move")
+
+    def _hold_at_end(self, burst: Burst) -> bool:
+        """At start-up, stay at the rolling end that closes a bracket (True).
+
+        The core closes a burst at the next tracking frame wherever the lens is. Before the
+        first depth the bracket's middle is only the old plan's (the first bracket spans the
+        working range), and the first burst re-plans the bracket: a frame held at the end closes
+        it within a frame or two instead of a half-bracket move back to the middle, and the lens
+        goes from the end straight to the new plan once the core's feedback on that frame is in.
+        The first closing end after the first depth is held too (``HOLDS_AFTER_DEPTH``): a far
+        target's first published depth is that burst's. The core does not take the held frames'
+        sizes for a depth jump (they are defocused: ``dffd.core.pipeline.SIZE_JUMP_MAX_BLUR_PX``).
+        """
+        if not burst.rolling or burst.opening or not burst.claims:
+            return False
+        if self._sigma is not None:
+            if self._depth_holds >= HOLDS_AFTER_DEPTH:
+                return False
+            self._depth_holds += 1
+        self._hold_opens = self._sigma is None
+        self._next_end_opens = True
+        cfg = self.config
+        period = self._clock.period
+        self._phase = "track"
+        self._track_from = self._clock.end_of(burst.claims[-1])
+        # The first frame exposed after the end's (its mid-time past the end's by half a period,
+        # whatever the timestamp jitter) carries the core's new plan.
+        self._hold_after = burst.claims[-1] + period / 2.0
+        self._hold_until = (
+            self._track_from + (cfg.capture_latency_frames + STALL_FRAMES + 1) * period
+        )
+        return True
+
+    def _holding(self, now: float) -> bool:
+        """A start-up hold is waiting for the core's feedback (see :meth:`_hold_at_end`)."""
+        if self._hold_after is None:
+            return False
+        if now >= self._hold_until:
+            self._hold_after = None  # no feedback in time (frames stopped): go on without it
+            self._hold_ended = self._hold_opens
+            return False
+        return True
 
     def _claim_after(self, t: float) -> None:
         """Claim the first exposure starting after ``t`` (+margin) for the current slot."""
