@@ -337,12 +337,13 @@ def test_no_burst_is_fitted_across_a_depth_jump() -> None:
     assert not run(5.0).burst_rejections
 
 
-@pytest.mark.parametrize("end_offset", [1500, 3000])
+@pytest.mark.parametrize("end_offset", [3000, 4500])
 def test_a_tracking_frame_held_at_a_bracket_end_is_no_depth_jump(end_offset: int) -> None:
     """The scheduler may hold the lens at a bracket's end for the frame that closes the burst
-    (before the first depth). That frame is tagged ``track`` but defocused, and its size is off
-    like a burst frame's: the burst is fitted and applied, not dropped as a depth jump; the
-    same frame at the best focus with the target 10 % nearer still is one."""
+    (start-up). That frame is tagged ``track`` but defocused (> 1.5 px here), and on the
+    reference simulator its size is off like a burst frame's (the synthetic disc's is not, so
+    the size change is made here by rendering the target 10 % nearer): it is not tested for a
+    jump, the burst is fitted and applied; the same frame at the best focus still is a jump."""
 
     def run(z_close: float, close_offset: int) -> tuple[Pipeline, list[Measurement]]:
         pipe = Pipeline(SERVICE, LENS)
@@ -369,10 +370,10 @@ def test_a_tracking_frame_held_at_a_bracket_end_is_no_depth_jump(end_offset: int
             shot(z_close, c + close_offset)
         return pipe, out
 
-    pipe, out = run(5.0, -end_offset)
+    pipe, out = run(4.5, -end_offset)
     assert not pipe.burst_rejections
     assert [m.accepted for m in out] == [True, True]
-    assert out[1].z_m == pytest.approx(5.0, rel=0.05)
+    assert out[1].z_m == pytest.approx(5.0, rel=0.05)  # the burst before the held frames
     pipe, out = run(4.5, 0)
     assert pipe.burst_rejections == {"depth jump during the burst": 1}
 
