@@ -168,6 +168,34 @@ class Subscriber:
         return next(r for r in self.messages["cmd/reply"] if r.get("id") == reply_id)
 
 
+def recent_depth_errors(messages: dict[str, list[dict[str, Any]]]) -> list[float]:
+    """|z − truth| of the last 30 estimates that carry a depth, sorted."""
+    recent = [e["z_m"] for e in messages["estimate"][-30:] if e["z_m"] is not None]
+    return sorted(abs(z - TRUE_DEPTH_M) for z in recent)
+
+
+async def wait_converged(sub: Subscriber, within_s: float) -> None:
+    """Wait until ≥ 3 measurements are in and the median error of the last estimates (≥ 20 with
+    a depth) is under CONVERGED_TOL_M: a convergence, not a message count, so that a loaded
+    machine's slower start does not fail the test, and a chain that never converges does."""
+
+    def converged(m: dict[str, list[dict[str, Any]]]) -> bool:
+        errors = recent_depth_errors(m)
+        return (
+            len(m["measurement"]) >= 3
+            and len(errors) >= 20
+            and (errors[len(errors) // 2] < CONVERGED_TOL_M)
+        )
+
+    try:
+        await sub.wait_for(converged, within_s)
+    except TimeoutError:
+        pytest.fail(
+            f"no convergence within {within_s} s: {len(sub.messages['measurement'])} "
+            f"measurements, last errors (m) {recent_depth_errors(sub.messages)}"
+        )
+
+
 @asynccontextmanager
 async def subscribe(broker: Mosquitto) -> AsyncIterator[Subscriber]:
     async with aiomqtt.Client(broker.host, broker.port) as client:
@@ -210,11 +238,7 @@ async def test_estimates_converge_commands_and_sigterm(
             )
             assert sub.messages["sim/truth"]
             # Depth converges to the truth.
-            await sub.wait_for(lambda m: len(m["estimate"]) >= 100, MESSAGE_TIMEOUT_S)
-            recent = [e["z_m"] for e in sub.messages["estimate"][-30:] if e["z_m"] is not None]
-            assert len(recent) >= 20
-            errors = sorted(abs(z - TRUE_DEPTH_M) for z in recent)
-            assert errors[len(errors) // 2] < CONVERGED_TOL_M, errors
+            await wait_converged(sub, MESSAGE_TIMEOUT_S)
             assert any(m["fit"]["accepted"] for m in sub.messages["measurement"])
             truth = sub.messages["sim/truth"][-1]
             assert truth["z_m"] == pytest.approx(TRUE_DEPTH_M, abs=0.01)
@@ -361,14 +385,7 @@ async def test_estimates_converge_with_the_simulated_camera_on_visca_over_ip(
         daemon = DaemonProcess(tmp_path, config)
         try:
             await sub.wait_for(online, STARTUP_TIMEOUT_S)
-            await sub.wait_for(
-                lambda m: len(m["measurement"]) >= 3 and len(m["estimate"]) >= 100,
-                MESSAGE_TIMEOUT_S + STARTUP_TIMEOUT_S,
-            )
-            recent = [e["z_m"] for e in sub.messages["estimate"][-30:] if e["z_m"] is not None]
-            assert len(recent) >= 20
-            errors = sorted(abs(z - TRUE_DEPTH_M) for z in recent)
-            assert errors[len(errors) // 2] < CONVERGED_TOL_M, errors
+            await wait_converged(sub, MESSAGE_TIMEOUT_S + STARTUP_TIMEOUT_S)
             assert any(m["fit"]["accepted"] for m in sub.messages["measurement"])
             status = [s for s in sub.messages["status"] if s["availability"] == "online"][-1]
             assert status["link"]["connected"] is True
