@@ -85,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_FAILURE
     t0 = reader.records[0].t_s if reader.records else 0.0
     print(
-        f"{len(result.lines)} estimates from {len(reader)} frames -> {args.out}; "
+        f"{len(result.lines)} estimates from {len(reader)} frames -> {args.out} "
+        f"({result.withheld} with depths held back before the first published one); "
         f"bursts accepted {result.accepted}, rejected {result.rejected}"
     )
     for reason, n in result.reasons.items():
@@ -123,11 +124,14 @@ class ReplayResult:
 
     ``rejected`` counts every burst that gave no depth: fits the core rejected and bursts it
     dropped before a fit (fewer than three frames with a focus cost); ``reasons`` counts each
-    reason (dropped ones as "dropped: …").
+    reason (dropped ones as "dropped: …"). ``withheld`` counts the estimates whose depths the
+    first-depth gate held back (their lines carry ``"published": false`` and null depths, as the
+    daemon publishes them; not scored).
     """
 
     def __init__(self) -> None:
         self.lines: list[dict[str, Any]] = []
+        self.withheld = 0
         self.accepted = 0
         self.rejected = 0
         self.reasons: dict[str, int] = {}
@@ -157,7 +161,8 @@ def replay(
                 reason = out.measurement.reason
                 result.reasons[reason] = result.reasons.get(reason, 0) + 1
         if out.estimate is not None:
-            result.lines.append(estimate_line(out.estimate, step.track))
+            result.lines.append(estimate_line(out.estimate, step.track, published=step.published))
+            result.withheld += not step.published
             trace.append(KFTraceEvent("frame", frame=out.estimate.frame_index))
     add_smoothed(result.lines, rts_smooth(trace))
     for reason, n in core.pipeline.burst_rejections.items():
@@ -179,8 +184,14 @@ def add_smoothed(lines: Sequence[dict[str, Any]], smoothed: dict[int, Smoothed])
         sigma[SMOOTHED] = None if sm is None else sigma.get("kf")
 
 
-def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str, Any]:
+def estimate_line(
+    e: Estimate, track: Track3DEstimate | None = None, *, published: bool = True
+) -> dict[str, Any]:
     """One EST.jsonl object (docs/design.md §8 fields first, then the rest of the estimate).
+
+    ``published`` False (the first-depth gate held the depths back, :mod:`dffd.first_depth`):
+    every field that follows from a filter's depth is null, as in the daemon's payload; the
+    burst's own ``measured`` depth stays (its ``…/measurement`` goes out as it is).
 
     ``sigma_m`` is the σ of every estimator (keys as ``depth_m``; null where no value),
     ``z_sigma_m`` the best's (the σ published with ``z_m``).
@@ -190,8 +201,9 @@ def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str
     ``velocity_m_s`` when present), ``acceleration_m_s2``, ``angular_speed_rad_s``,
     ``position_sigma_m`` and ``model_probabilities``.
     """
-    return {
+    line: dict[str, Any] = {
         "t_s": e.t,
+        "published": published,
         "depth_m": {k: e.depth_m.get(k) for k in ESTIMATORS},
         "best": e.best,
         "r_px": e.r_px,
@@ -218,6 +230,20 @@ def estimate_line(e: Estimate, track: Track3DEstimate | None = None) -> dict[str
         "position_sigma_m": None if track is None else list(track.position_sigma_m),
         "model_probabilities": None if track is None else dict(track.model_probabilities),
     }
+    if not published:
+        for key in ("depth_m", "sigma_m"):
+            values: dict[str, Any] = line[key]
+            line[key] = {k: v if k == "measured" else None for k, v in values.items()}
+        line.update(dict.fromkeys(_DEPTH_FIELDS))
+    return line
+
+
+# The fields of an EST.jsonl line that follow from a filter's depth (null while held back).
+_DEPTH_FIELDS = (
+    "z_m", "z_sigma_m", "size_m", "beta_m_s", "position_m", "position_world_m",
+    "velocity_world_m_s", "track_position_m", "track_velocity_m_s", "acceleration_m_s2",
+    "angular_speed_rad_s", "position_sigma_m", "model_probabilities",
+)  # fmt: skip
 
 
 def error_stats(
@@ -257,7 +283,10 @@ def summarize(
     bursts: tuple[int, int],
     reasons: dict[str, int] | None = None,
 ) -> dict[str, Any]:
-    """The SUMMARY.json object of design.md §8 (``measured`` scored at each burst's mid-time)."""
+    """The SUMMARY.json object of design.md §8 (``measured`` scored at each burst's mid-time).
+
+    The filters are scored from the first published estimate on: a line the first-depth gate
+    held back has null filter depths; ``withheld_estimates`` counts those lines."""
     estimators: dict[str, Any] = {}
     for name in (*ESTIMATORS, SMOOTHED):
         ts: list[float] = []
@@ -287,6 +316,7 @@ def summarize(
         "schema": SCHEMA,
         "settle_s": settle_s,
         "estimators": estimators,
+        "withheld_estimates": sum(1 for line in lines if line.get("published") is False),
         "bursts": {"accepted": bursts[0], "rejected": bursts[1], "reasons": dict(reasons or {})},
     }
 

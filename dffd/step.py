@@ -9,6 +9,11 @@ raw channels the depth filters fuse (:mod:`dffd.core.track_feed`): the target's 
 image size on the frame, and each accepted burst's size measurement as the pipeline made it — not
 the fused depth, whose errors are correlated from frame to frame (docs/tracking3d.md). The service
 runs ``("mmae",)``; the bench adds ``"imm"`` and ``"cv"``.
+
+The step also decides whether a frame's depths may be published (the first-depth gate,
+:mod:`dffd.first_depth`): the daemon nulls the depth fields of an estimate it holds back, the
+bench leaves it out of its scores and ``dffd replay`` out of its summary, so every runner counts
+from the same first published estimate (docs/estimation.md §22).
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from dffd.core.tracking3d import (
     cartesian_measurement,
     direction_rate_deg_s,
 )
+from dffd.first_depth import FirstDepthGate
 
 if TYPE_CHECKING:
     from dffd.core.lens import Lens
@@ -86,6 +92,9 @@ class StepResult:
     # kinds that hold a track); the first kind of the core's bank is the published one.
     tracks: Mapping[str, Track3DEstimate] = field(default_factory=dict)
     published_kind: str | None = None
+    # Whether the estimate's depths (and every field that follows from them) may be published:
+    # False while the first-depth gate holds them back (dffd.first_depth), and without estimate.
+    published: bool = False
 
     @property
     def track(self) -> Track3DEstimate | None:
@@ -103,6 +112,7 @@ class CoreStep:
         self.trackers = Tracker3DBank(trackers)
         self._feed = SizeFeed(next(iter(self.trackers.trackers.values())).config)
         self._camera: CameraModel | None = None
+        self.gate = FirstDepthGate()  # no depth published before a bracketed, precise burst
 
     @classmethod
     def build(
@@ -123,6 +133,9 @@ class CoreStep:
         # frames only, as the daemon once did, loses that target for good on the bench: ss
         # std 0.31 m instead of 7.7 mm with hil run paper-circle --fast.)
         out = pipeline.process(frame, tag)
+        if out.measurement is not None:
+            self.gate.on_measurement(out.measurement)
+        depths_out = out.estimate is not None and self.gate.passes(out.estimate)
         obs = out.observation
         centroid = out.candidate_px  # while acquiring: a target cut by the frame's edge
         if obs is not None and obs.ok:
@@ -138,7 +151,9 @@ class CoreStep:
         published = tracks.get(self.trackers.kinds[0])
         rate = None if published is None else direction_rate_deg_s(published)
         feedback = Feedback(frame.t, sigma, plan, centroid, tag.pan_deg, tag.tilt_deg, rate)
-        return StepResult(frame.index, tag, out, feedback, tracks, self.trackers.kinds[0])
+        return StepResult(
+            frame.index, tag, out, feedback, tracks, self.trackers.kinds[0], depths_out
+        )
 
     def _track(
         self, frame: Frame, tag: FrameTag, out: PipelineOutput

@@ -336,14 +336,25 @@ class _Runner:
         c0 = time.thread_time()
         step = self.core.step(frame, tag)
         res.core_cpu_s.append(time.thread_time() - c0)
-        self._score(step.output, frame, tag, truth)
-        if step.tracks and res.track3d is not None:
+        self._score(step.output, frame, tag, truth, published=step.published)
+        if step.tracks and step.published and res.track3d is not None:
             res.track3d.add(frame.t - res.t_start, truth_3d(truth), step.tracks)
         step.feedback.apply(self.scheduler)
         if self.on_step is not None:
             self.on_step(step)
 
-    def _score(self, out: PipelineOutput, frame: Frame, tag: FrameTag, truth: FrameTruth) -> None:
+    def _score(
+        self,
+        out: PipelineOutput,
+        frame: Frame,
+        tag: FrameTag,
+        truth: FrameTruth,
+        *,
+        published: bool = True,
+    ) -> None:
+        """Score one frame's output: the burst always (its ``…/measurement`` goes out as it is),
+        the estimate's depths only when the first-depth gate publishes them (dffd.first_depth:
+        the bench scores what a user receives, from the first published estimate on)."""
         truth_z = truth.z_m
         res = self.result
         size = self.scenario.target.size_m
@@ -379,13 +390,15 @@ class _Runner:
         res.estimate_frames += 1
         res.r_px.add(frame.t, est.r_px, truth.r_px)
         res.truth_depth.add(frame.t, truth_z, truth_z)
-        for name, z in est.depth_m.items():
+        if not published:
+            res.withheld += 1
+        for name, z in est.depth_m.items() if published else ():
             if name == "measured" or z is None:
                 continue
             res.series(name).add(frame.t, z, truth_z, est.sigma_by.get(name))
-        if est.beta_m_s is not None:
+        if published and est.beta_m_s is not None:
             res.beta.add(frame.t, est.beta_m_s)
-        if est.size_m is not None:
+        if published and est.size_m is not None:
             res.size.add(frame.t, est.size_m, size)
         if self.scenario.baselines.known_size and est.r_px > 0:
             z_ks = known_size_depth(

@@ -118,6 +118,9 @@ def build_report(
         "estimate_hz": estimate_hz,
         # issue 11.5's goal: an estimate on every frame (≥ 0.9 × the frame rate)
         "estimate_rate_ratio": estimate_hz / frame_hz if frame_hz > 0 else None,
+        # estimates whose depths the first-depth gate held back (dffd.first_depth): published
+        # with null depths, so not scored — every score counts from the first published one
+        "withheld_estimates": sum(r.withheld for r in results),
         "frames_by_role": _sum_dicts([r.frames_by_role for r in results]),
     }
     cpu_ms = np.asarray([c for r in results for c in r.core_cpu_s], dtype=np.float64) * 1e3

@@ -92,6 +92,8 @@ class RunResult:
     frames: int = 0
     frames_by_role: dict[str, int] = field(default_factory=dict)
     estimate_frames: int = 0  # frames the core answered with an estimate (any role)
+    # of those, the estimates whose depths the first-depth gate held back (not scored)
+    withheld: int = 0
     depth_limit_hz: float | None = None
     full_sweep_depth_hz: float | None = None
     core_cpu_s: list[float] = field(default_factory=list)  # per processed frame

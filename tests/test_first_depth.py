@@ -10,15 +10,14 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
-from dffd.daemon.payloads import (
-    FIRST_DEPTH_FORCE_BURSTS,
-    FIRST_DEPTH_MAX_BURSTS,
-    FirstDepthGate,
-    Payloads,
-    without_depth,
-)
+from dffd.daemon.payloads import Payloads, without_depth
+from dffd.first_depth import FIRST_DEPTH_FORCE_BURSTS, FIRST_DEPTH_MAX_BURSTS, FirstDepthGate
+from dffd.recording import Truth
+from dffd.replay import estimate_line, summarize
 
 EXTRAPOLATED = CoreMeasurement(
     burst_id=1, t=1.0, frame_indices=(3, 4, 5), focus_counts=(7371, 16260, 22989),
@@ -97,3 +96,28 @@ def test_a_held_back_estimate_keeps_its_image_fields_and_loses_every_depth() -> 
     for key in ("z_m", "sigma_m", "size_m", "position_m", "velocity_m_s"):
         assert getattr(held, key) is None
     assert (held.r_px, held.pan_deg, held.seq) == (payload.r_px, payload.pan_deg, payload.seq)
+
+
+def test_replay_scores_from_the_first_published_estimate_and_counts_the_held_back_ones() -> None:
+    """The gate is the core step's (dffd.step): replay's lines of held-back estimates carry null
+    filter depths, as the daemon's payloads do, and its summary scores the filters from the
+    first published estimate on; the burst's own depth is scored either way."""
+    held = estimate_line(ESTIMATE, published=False)
+    assert held["published"] is False
+    assert held["depth_m"] == {**NO_DEPTH, "measured": 15.2}
+    assert all(v is None for v in held["sigma_m"].values())
+    for key in ("z_m", "size_m", "position_m"):
+        assert held[key] is None
+    depth = {"measured": 10.01, "cf1": None, "cf2": 10.02, "lpv": 10.02, "kf": 10.03}
+    sigma = {"lpv": 0.05, "kf": 0.05, "cf2": 0.05, "measured": 0.04}
+    good = replace(
+        ESTIMATE, t=13.0, frame_index=8, z_m=10.02, sigma_m=0.05, depth_m=depth, sigma_by=sigma
+    )
+    lines = [held, estimate_line(good, published=True)]
+    truth = Truth(t_s=np.array([0.0, 20.0]), z_m=np.array([10.0, 10.0]))
+    summary = summarize(lines, truth, 0.0, 0.0, bursts=(2, 0))
+    assert summary["withheld_estimates"] == 1
+    lpv = summary["estimators"]["lpv"]
+    assert lpv["n"] == 1  # the 15.1 m held back is not scored: only the published 10.02 m
+    assert abs(lpv["first_abs_err_m"] - 0.02) < 1e-9
+    assert summary["estimators"]["measured"]["n"] == 2

@@ -129,7 +129,10 @@ def test_the_daemon_estimator_path_matches_the_bench(
         d_est, b_est = step.output.estimate, bench_step.output.estimate
         assert (d_est is None) == (b_est is None)
         if d_est is not None and b_est is not None:
-            assert estimate_line(d_est, step.track) == estimate_line(b_est, bench_step.track)
+            # the same first-depth gate in both (dffd.first_depth): the same depths held back
+            assert step.published == bench_step.published
+            d_line = estimate_line(d_est, step.track, published=step.published)
+            assert d_line == estimate_line(b_est, bench_step.track, published=bench_step.published)
             tracked += 1
     # The comparison covered tracking, bursts and transit frames (not an empty run).
     assert tracked >= 20
@@ -149,7 +152,7 @@ def test_replay_with_the_service_config_reproduces_the_bench(
     assert dffd_main(["replay", str(rec_dir), "--out", str(out), "--config", str(config)]) == 0
     replayed = [json.loads(line) for line in out.read_text("utf-8").splitlines()]
     expected = [
-        json.loads(json.dumps(estimate_line(s.output.estimate, s.track)))
+        json.loads(json.dumps(estimate_line(s.output.estimate, s.track, published=s.published)))
         for s in recorded.steps
         if s.output.estimate is not None
     ]

@@ -73,7 +73,7 @@ from dffd.daemon.console import Console, ConsoleSnapshot
 from dffd.daemon.estimator import EstimatorResult, EstimatorThread
 from dffd.daemon.jsonlog import JsonlLog, JsonlLogError
 from dffd.daemon.notify import Notifier
-from dffd.daemon.payloads import FirstDepthGate, Payloads, truth_payload, without_depth
+from dffd.daemon.payloads import Payloads, truth_payload, without_depth
 from dffd.daemon.searchwatch import SearchWatch
 from dffd.daemon.startup import (
     CAMERA_INIT_TIMEOUT_S,
@@ -210,7 +210,6 @@ class Daemon:
         self._results_failed: asyncio.Future[None] | None = None
         self.results_dropped = 0
         self.payloads = Payloads(config.estimators.best)
-        self.first_depth = FirstDepthGate()  # no depth published before a bracketed burst
         self.board = StatusBoard(config.camera.name, config.estimators.best, time.monotonic())
         self._ready_sent = False
         self._commands: Commands | None = None
@@ -563,7 +562,6 @@ class Daemon:
         if self.dashboard is not None:
             self.dashboard.on_result(result.frame, result.step, result.cpu_s)
         if out.measurement is not None:
-            self.first_depth.on_measurement(out.measurement)
             self.board.on_measurement(now, out.measurement)
             payload_m = self.payloads.measurement(out.measurement)
             if payload_m is not None:
@@ -574,7 +572,8 @@ class Daemon:
         payload_e = None
         if out.estimate is not None:
             payload_e = self.payloads.estimate(out.estimate, result.step.track)
-            if payload_e is not None and not self.first_depth.passes(out.estimate):
+            # the core step's first-depth gate (dffd.first_depth): held back, the depths go null
+            if payload_e is not None and not result.step.published:
                 payload_e = without_depth(payload_e)
         if payload_e is not None:
             self.board.on_estimate(now, payload_e)
