@@ -31,6 +31,7 @@ from dffd.calibrate_fit import (
     FocusModel,
     FocusOptics,
     TableFit,
+    model_v_mm,
     model_with_structure,
 )
 
@@ -217,7 +218,7 @@ def _leave_one_depth_out_um(
             continue
         others = [q for q in fitted if q.placed_m != p.placed_m and q.placed_m not in aside_depths]
         model = model_with_structure(others, f, span, like)
-        out.append(float(np.mean([(q.v_mm - float(model.v_mm(q.at))) * 1e3 for q in mine])))
+        out.append(float(np.mean([(q.v_mm - model_v_mm(model, q)) * 1e3 for q in mine])))
     return np.asarray(out, dtype=np.float64)
 
 
@@ -239,7 +240,11 @@ def _bootstrap_sigma_v_um(
     for _ in range(BOOTSTRAP_SAMPLES):
         draw = dict(zip(depths.tolist(), rng.normal(size=len(depths)).tolist(), strict=True))
         moved = [
-            dataclasses.replace(p, counts_exact=p.at + draw[d] * s)
+            dataclasses.replace(
+                p,
+                counts_exact=p.at + draw[d] * s,
+                pair_at=p.pair_at + draw[d] * s,  # a level's two ends move together (NaN: none)
+            )
             for p, s, d in zip(points, sigma_counts, depth_of.tolist(), strict=True)
         ]
         samples.append(model_with_structure(moved, f, span, like).v_mm(counts))

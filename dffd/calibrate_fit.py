@@ -73,6 +73,7 @@ MAX_BASE_DEGREE = 3  # the polynomial under the spline: at most cubic (the splin
 # best is kept (or no spline). Generalised cross-validation on single points chose no smoothing
 # (it interpolated the scatter: two points of one sweep vouch for each other).
 SPLINE_LAMBDAS = tuple(10.0**k for k in range(-9, 1))
+KNOT_DECIMALS = 6  # settings closer than 1e-6 of the focus range share a spline knot
 TABLE_STEP_COUNTS = 256  # spacing of the written table's rows (PCHIP of a smooth model: exact)
 # Half-width of the vertex window of the refit in v, in px of blur radius: the estimator's own
 # burst bracket (PlanConfig.outer_blur_px, 3 px), where a measure's lean on a lens is the one its
@@ -94,6 +95,11 @@ MIN_MODEL_DEPTHS = 4  # fewer depths: the table is the measured points themselve
 # than this many of its σ from the others' median is dropped (a disturbed sweep: the target
 # knocked, a lighting flicker); the combined σ is scaled up by the sweeps' own disagreement.
 SWEEP_OUTLIER_SIGMA = 4.0
+# fit_table(levels=True): the model is fitted to each settled bracket's level — the table's
+# mean v over its two ends is the depth's v — instead of to the two ends at v ∓ h, whose width
+# on the axis read is the axis's own (docs/estimation.md §18, §20). Not the default: measured
+# worse on held-out sweeps of the aberrated optics (§20).
+LEVEL_NEWTON_STEPS = 4  # the mean-power correction converges quadratically from P(v)
 
 
 class CalibrationError(RuntimeError):
@@ -120,6 +126,10 @@ class DepthPoint:
     rule: str = "least squares"
     # a bracket end stands for v ∓ h of the sweep's depth; the depth the target was placed at
     target_m: float = math.nan  # NaN: z_m itself
+    # a bracket's level (rule "bracket level"): the counts of the settled bracket's other end;
+    # the table's mean v at ``at`` and ``pair_at`` is the depth's v (``z_m``: the depth of the
+    # mean focus power that gives it). NaN: a point, the table's v at ``at`` is ``v_mm``.
+    pair_at: float = math.nan
 
     @property
     def placed_m(self) -> float:
@@ -130,6 +140,11 @@ class DepthPoint:
     def at(self) -> float:
         """The sharpest counts, unrounded."""
         return self.counts if math.isnan(self.counts_exact) else self.counts_exact
+
+    @property
+    def other(self) -> float:
+        """The bracket's other end for a level, else ``at`` (the constraint's second setting)."""
+        return self.at if math.isnan(self.pair_at) else self.pair_at
 
 
 @dataclass(frozen=True, slots=True)
@@ -345,13 +360,15 @@ def fit_focus_model(
     *,
     groups: npt.ArrayLike | None = None,
     structure: tuple[int, float] | None = None,
+    counts_b: npt.ArrayLike | None = None,
 ) -> ModelFit:
     """P(counts) through the depths' points; structure by cross-validation, outliers dropped.
 
     ``counts_span`` normalises the counts (the focus range: far end, near end); ``groups``: the
     depth each point's sweep was taken at (cross-validation leaves a depth out; NaN: a point
     always kept; None: each point its own depth); ``structure``: (degree, spline smoothing)
-    imposed instead of chosen.
+    imposed instead of chosen; ``counts_b``: per point a second setting — the model's mean power
+    at ``counts`` and ``counts_b`` is fitted to 1/z (a bracket's level; None or equal: a point).
     """
     labels = (
         np.arange(len(z_m), dtype=np.float64)
@@ -360,7 +377,9 @@ def fit_focus_model(
     )
     power = 1.0 / np.asarray(z_m, dtype=np.float64)
     lo, hi = counts_span
-    u = (np.asarray(counts, dtype=np.float64) - lo) / (hi - lo)
+    ca = np.asarray(counts, dtype=np.float64)
+    cb = ca if counts_b is None else np.asarray(counts_b, dtype=np.float64)
+    u = np.stack([(ca - lo) / (hi - lo), (cb - lo) / (hi - lo)], axis=1)  # n × 2 settings
     sigma_p = _power_sigma(u, power, np.asarray(sigma_counts, dtype=np.float64), hi - lo)
     used = np.ones(len(u), dtype=bool)
     max_drop = int(MAX_OUTLIER_FRACTION * len(u))
@@ -369,7 +388,8 @@ def fit_focus_model(
             u[used], power[used], sigma_p[used], (lo, hi), focal_length_mm,
             groups=labels[used], structure=structure,
         )  # fmt: skip
-        resid = (power - model.power_dpt(counts)) / sigma_p
+        p_model = 0.5 * (model.power_dpt(ca) + model.power_dpt(cb))
+        resid = (power - p_model) / sigma_p
         r_used = resid[used]
         scale = max(MAD_TO_SIGMA * float(np.median(np.abs(r_used - np.median(r_used)))), 1.0)
         worst = int(np.argmax(np.where(used, np.abs(resid), -np.inf)))
@@ -377,9 +397,9 @@ def fit_focus_model(
             break
         used[worst] = False
     v_meas = 1.0 / (1.0 / focal_length_mm - power / MM_PER_M)
-    v_model = model.v_mm(counts)
+    v_model = 1.0 / (1.0 / focal_length_mm - p_model / MM_PER_M)
     with np.errstate(divide="ignore", invalid="ignore"):  # a depth at infinity: P = 0
-        z_model = 1.0 / model.power_dpt(counts)
+        z_model = 1.0 / p_model
         dz_mm = np.nan_to_num((z_model - z_m) * MM_PER_M)
     dv_dp = v_meas**2 / MM_PER_M  # mm per dioptre
     return ModelFit(
@@ -397,10 +417,14 @@ def fit_table(
     points: list[DepthPoint],
     f_number: float | None = None,
     window_blur_px: float = VERTEX_WINDOW_BLUR_PX,
+    *,
+    levels: bool = False,
 ) -> TableFit:
     """The calibrated lens: a smooth focus model through the depth points (vertices refitted in
     v through it, on ± ``window_blur_px`` of blur), tabulated densely; with fewer than
-    MIN_MODEL_DEPTHS depths, the points themselves."""
+    MIN_MODEL_DEPTHS depths, the points themselves. ``levels``: fit each settled bracket's
+    level (the mean of the table over its two ends) instead of its two ends, through the whole
+    model as the axis (docs/estimation.md §20)."""
     f, pitch = rig.focal_length_mm, rig.pixel_pitch_mm
     groups = _by_depth(points)
     points = [combine_sweeps(g) for g in groups]
@@ -426,19 +450,25 @@ def fit_table(
     # bracket meets the end of the focus range (beyond ~11 m) give no pair and are not fitted.
     n_f = f_number if f_number is not None else PlanConfig().default_f_number
     per_px = pitch * n_f * 2.0 / f  # mm of v per px of blur radius, per mm of v (plan_burst)
-    model, refit, fit_points = _settle(groups, model, points, span, per_px * window_blur_px)
+    model, refit, fit_points = _settle(
+        groups, model, points, span, per_px * window_blur_px, levels=levels
+    )
     # A focus curve the polynomial cannot follow (a cam ripple) leaves the bracket ends of
     # neighbouring depths inconsistent through the polynomial axis: the fit then misses its own
     # points by many of their σ. Only then the passes go on with the whole model (polynomial and
     # spline) as the axis; through the spline a model that needs none feeds the readings'
     # scatter back (reference optics: misfit 0.4-0.8 σ rms, polynomial axis kept).
+    # Levels fix no width: their pairs must be read through the table itself (its own width),
+    # or the estimator's brackets on it are not the pairs calibrated (a polynomial axis on a
+    # rippled cam: widths 20 % off; held-out aberrated sweeps read 86-94 mm rms, §20).
     misfit = _misfit_sigma(model, fit_points)
     axis = "polynomial"
-    if misfit > AXIS_MISFIT_SIGMA:
+    if misfit > AXIS_MISFIT_SIGMA or levels:
         axis = "whole model"
         model, refit, fit_points = _settle(
-            groups, model, points, span, per_px * window_blur_px, spline_axis=True
-        )
+            groups, model, points, span, per_px * window_blur_px, spline_axis=True,
+            levels=levels,
+        )  # fmt: skip
     ats = [p.at for p in (*refit, *fit_points)]
     grid, v = _tabulate(model.model, (min(ats), max(ats)), span)
     lens = Lens(
@@ -493,14 +523,20 @@ def combine_sweeps(sweeps: list[DepthPoint]) -> DepthPoint:
     )
 
 
+def model_v_mm(model: FocusModel, point: DepthPoint) -> float:
+    """The model's v where ``point`` constrains it: at its counts, or a level's mean over its
+    bracket's two ends (compare with ``point.v_mm``)."""
+    return float(np.mean(model.v_mm([point.at, point.other])))
+
+
 def model_with_structure(
     points: list[DepthPoint], f: float, span: tuple[float, float], like: FocusModel
 ) -> FocusModel:
     """The anchored focus model of ``like``'s structure (degree, spline or not) through
     ``points``, without choosing it again: for resampling the table's uncertainty."""
-    counts, z, sigma_counts, _ = _anchored_inputs(points, span)
+    counts, counts_b, z, sigma_counts, _ = _anchored_inputs(points, span)
     lo, hi = span
-    u = (counts - lo) / (hi - lo)
+    u = np.stack([(counts - lo) / (hi - lo), (counts_b - lo) / (hi - lo)], axis=1)
     power = 1.0 / z
     sigma_p = _power_sigma(u, power, sigma_counts, hi - lo)
     return _build_model(u, power, sigma_p, span, f, degree=like.degree, lam=like.spline_lam)
@@ -526,8 +562,9 @@ def _build_model(
 def _power_sigma(
     u: FloatArray, power: FloatArray, sigma_counts: FloatArray, width: float
 ) -> FloatArray:
-    """σ of P from the vertex's σ in counts through the local slope of a first straight fit."""
-    slope = abs(np.polyfit(u, power, 1)[0])
+    """σ of P from the vertex's σ in counts through the local slope of a first straight fit
+    (``u``: n × 2 settings, a point's two equal)."""
+    slope = abs(np.polyfit(u.mean(axis=1), power, 1)[0])
     return np.asarray(np.maximum(slope * np.asarray(sigma_counts) / width, 1e-9), dtype=np.float64)
 
 
@@ -581,7 +618,7 @@ def _cross_validated(
             other = build(~out)
         except ValueError:  # too few points left for the structure
             return math.inf
-        pred = other.power_dpt(u[out] * (span[1] - span[0]) + span[0])
+        pred = _mean_power(other, u[out], span)
         errs.extend(float(x) for x in pred - p[out])
     return math.sqrt(float(np.mean(np.square(errs)))) if errs else math.inf
 
@@ -590,20 +627,65 @@ def _with_spline(
     model: FocusModel, u: FloatArray, p: FloatArray, s: FloatArray, lam: float
 ) -> FocusModel:
     """``model`` plus a smoothing spline of its residuals with smoothing ``lam`` (weights
-    normalised to a mean of one, u in [0, 1]): the cam's ripples the polynomial misses."""
+    normalised to a mean of one, u in [0, 1]): the cam's ripples the polynomial misses. Each
+    row of ``u`` holds a constraint's two settings: the spline's mean there is fitted (a
+    point's two are equal)."""
     if len(u) < SPLINE_MIN_POINTS:
         return model
-    order = np.argsort(u)
-    r = p - model.power_dpt(u * (model.counts_hi - model.counts_lo) + model.counts_lo)
-    w = 1.0 / s[order] ** 2
-    uo = u[order]
-    if np.any(np.diff(uo) <= 0):
-        raise ValueError("a spline needs distinct settings")
-    spline = make_smoothing_spline(uo, r[order], w=w / float(np.mean(w)), lam=lam)
+    span = (model.counts_lo, model.counts_hi)
+    r = p - _mean_power(model, u, span)
+    w = 1.0 / s**2
+    w = w / float(np.mean(w))
+    if np.array_equal(u[:, 0], u[:, 1]):  # points only: scipy's smoothing spline
+        order = np.argsort(u[:, 0])
+        uo = u[order, 0]
+        if np.any(np.diff(uo) <= 0):
+            raise ValueError("a spline needs distinct settings")
+        spline = make_smoothing_spline(uo, r[order], w=w[order], lam=lam)
+    else:
+        spline = _mean_smoothing_spline(u, r, w, lam)
     return FocusModel(
         model.coef, model.counts_lo, model.counts_hi, model.focal_length_mm, spline,
         (float(u.min()), float(u.max())), lam,
     )  # fmt: skip
+
+
+def _mean_smoothing_spline(u: FloatArray, r: FloatArray, w: FloatArray, lam: float) -> BSpline:
+    """The cubic spline s minimising Σ w (½(s(u₀) + s(u₁)) − r)² + lam ∫ s''² over the rows
+    (u₀, u₁) of ``u``: a smoothing spline fitted to means of two values (a bracket's level)
+    instead of to values. The minimiser over all functions is a natural cubic spline with knots
+    at every setting (as for points), so the B-spline basis on those knots is exact; for points
+    (u₀ = u₁) this is scipy's ``make_smoothing_spline``."""
+    knots = np.unique(np.round(u.ravel(), KNOT_DECIMALS))
+    if len(knots) < 4:
+        raise ValueError("a spline needs at least four distinct settings")
+    t = np.r_[[knots[0]] * 3, knots, [knots[-1]] * 3]
+    n_basis = len(t) - 4
+    clipped = np.clip(u, knots[0], knots[-1])
+    design = 0.5 * (
+        BSpline.design_matrix(clipped[:, 0], t, 3).toarray()
+        + BSpline.design_matrix(clipped[:, 1], t, 3).toarray()
+    )
+    # ∫ B_i'' B_j'': B'' is linear on each knot interval, so two Gauss points are exact
+    a, b = knots[:-1], knots[1:]
+    gauss = 0.5 / math.sqrt(3.0)
+    nodes = np.r_[0.5 * (a + b) - gauss * (b - a), 0.5 * (a + b) + gauss * (b - a)]
+    weights = np.r_[0.5 * (b - a), 0.5 * (b - a)]
+    second = np.stack(
+        [BSpline(t, np.eye(n_basis)[k], 3).derivative(2)(nodes) for k in range(n_basis)], axis=1
+    )
+    penalty = second.T @ (second * weights[:, None])
+    normal = design.T @ (design * w[:, None]) + lam * penalty
+    coef = np.linalg.lstsq(normal, design.T @ (w * r), rcond=None)[0]
+    return BSpline(t, coef, 3)
+
+
+def _mean_power(model: FocusModel, u: FloatArray, span: tuple[float, float]) -> FloatArray:
+    """The model's mean focus power over each row's two settings (normalised counts)."""
+    counts = u * (span[1] - span[0]) + span[0]
+    return np.asarray(
+        0.5 * (model.power_dpt(counts[:, 0]) + model.power_dpt(counts[:, 1])), dtype=np.float64
+    )
 
 
 def _window(
@@ -667,8 +749,13 @@ def _vertex(fit: tuple[FloatArray, FloatArray, float, float]) -> tuple[float, fl
 
 
 def _polyfit(u: FloatArray, p: FloatArray, s: FloatArray, degree: int) -> FloatArray:
-    """Weighted least-squares polynomial (lowest degree first)."""
-    design = np.vander(u, degree + 1, increasing=True) / s[:, None]
+    """Weighted least-squares polynomial (lowest degree first) whose mean over each row's two
+    settings ``u`` fits ``p``."""
+    vander = 0.5 * (
+        np.vander(u[:, 0], degree + 1, increasing=True)
+        + np.vander(u[:, 1], degree + 1, increasing=True)
+    )
+    design = vander / s[:, None]
     coef, *_ = np.linalg.lstsq(design, p / s, rcond=None)
     return np.asarray(coef, dtype=np.float64)
 
@@ -719,8 +806,10 @@ def _fit_anchored(
     """The focus model through the points and the infinity anchor (the far end of the focus
     range focuses at infinity: the camera's datasheet); the fit's per-depth figures are the
     points' (the anchor's dropped)."""
-    counts, z, sigma, groups = _anchored_inputs(points, span)
-    fit = fit_focus_model(counts, z, sigma, f, span, groups=groups, structure=structure)
+    counts, counts_b, z, sigma, groups = _anchored_inputs(points, span)
+    fit = fit_focus_model(
+        counts, z, sigma, f, span, groups=groups, structure=structure, counts_b=counts_b
+    )
     # in depth: the error a target at the sweep's own depth would see (a bracket end stands
     # for a v, not for a depth a target was at)
     placed = np.array([p.placed_m for p in points]) * MM_PER_M
@@ -736,10 +825,11 @@ def _fit_anchored(
 
 def _anchored_inputs(
     points: list[DepthPoint], span: tuple[float, float]
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Counts, depth, σ (counts) and the placed depth (NaN: the anchor) of the points and of
-    the infinity anchor (last)."""
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Counts, the second counts of a level (:attr:`DepthPoint.other`), depth, σ (counts) and
+    the placed depth (NaN: the anchor) of the points and of the infinity anchor (last)."""
     counts = np.array([*(p.at for p in points), span[0]])
+    counts_b = np.array([*(p.other for p in points), span[0]])
     sigma = np.array([p.sigma_counts for p in points])
     # a point without a σ (a rig that gave none) weighs as the median of the others
     fallback = float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else 1.0
@@ -747,7 +837,7 @@ def _anchored_inputs(
     sigma = np.r_[sigma, float(np.median(sigma))]
     z = np.array([*(p.z_m for p in points), math.inf])
     groups = np.array([*(p.placed_m for p in points), math.nan])
-    return counts, z, sigma, groups
+    return counts, counts_b, z, sigma, groups
 
 
 def _by_depth(points: list[DepthPoint]) -> list[list[DepthPoint]]:
@@ -759,13 +849,20 @@ def _by_depth(points: list[DepthPoint]) -> list[list[DepthPoint]]:
 
 
 def _closed_loop_read(
-    point: DepthPoint, model: Any, half_width_mm: float, span: tuple[float, float]
+    point: DepthPoint,
+    model: Any,
+    half_width_mm: float,
+    span: tuple[float, float],
+    *,
+    levels: bool = False,
 ) -> tuple[DepthPoint, ...]:
     """``point``'s sweep read through ``model`` as the v axis: where the estimator's closed
     loop settles with a bracket of ± ``half_width_mm`` (:func:`closed_loop_vertex`) — the
     bracket's two ends (points at v ∓ h of the depth) and its centre (the depth); or, where the
     bracket meets the end of the focus range ``span`` or the sweep does not reach it, only the
-    depth point, read at the pinned bracket or at the least-squares vertex of the window."""
+    depth point, read at the pinned bracket or at the least-squares vertex of the window. With
+    ``levels`` the two ends come as one level point (:attr:`DepthPoint.pair_at`) and the
+    centre."""
     if len(point.sweep) < 3:
         return (point,)
     c, g, s = (np.array(col) for col in zip(*point.sweep, strict=True))
@@ -797,6 +894,16 @@ def _closed_loop_read(
     if loop.pinned:
         return (at_v(loop.x, loop.sigma, "closed loop, pinned"),)
     h = half_width_mm
+    if levels:
+        a = at_v(loop.x - h, loop.sigma, "bracket end", -h)
+        b = at_v(loop.x + h, loop.sigma, "bracket end", h)
+        level = dataclasses.replace(
+            at_v(loop.x, loop.sigma, "bracket level"),
+            counts_exact=a.at,
+            pair_at=b.at,
+            z_m=_level_depth_m(point.v_mm, model.power_dpt([a.at, b.at]), model.focal_length_mm),
+        )
+        return (level, at_v(loop.x, loop.sigma, "closed loop"))
     return (
         at_v(loop.x - h, loop.sigma, "bracket end", -h),
         at_v(loop.x + h, loop.sigma, "bracket end", h),
@@ -812,6 +919,7 @@ def _settle(
     h_per_v: float,
     *,
     spline_axis: bool = False,
+    levels: bool = False,
 ) -> tuple[ModelFit, list[DepthPoint], list[DepthPoint]]:
     """Refit passes until the bracket ends stop moving: each sweep read through the model (its
     polynomial, or the whole model with ``spline_axis``), the model refitted through the ends;
@@ -824,9 +932,15 @@ def _settle(
         ends: list[DepthPoint] = []
         centres: list[DepthPoint] = []
         for g in groups:
-            reads = [_closed_loop_read(p, mapping, h_per_v * p.v_mm, span) for p in g]
+            reads = [
+                _closed_loop_read(p, mapping, h_per_v * p.v_mm, span, levels=levels) for p in g
+            ]
+            level_reads = [r for r in reads if len(r) == 2]
             pairs = [r for r in reads if len(r) == 3]
-            if pairs:
+            if level_reads:
+                ends.append(_combine_levels([r[0] for r in level_reads]))
+                centres.append(combine_sweeps([r[1] for r in level_reads]))
+            elif pairs:
                 ends += [
                     combine_sweeps([r[0] for r in pairs]),
                     combine_sweeps([r[1] for r in pairs]),
@@ -837,7 +951,7 @@ def _settle(
         if len({p.placed_m for p in ends}) < MIN_MODEL_DEPTHS:
             break
         settled = len(ends) == len(fit_points) and all(
-            abs(a.at - b.at) < SETTLED_SIGMA * a.sigma_counts
+            max(abs(a.at - b.at), abs(a.other - b.other)) < SETTLED_SIGMA * a.sigma_counts
             for a, b in zip(ends, fit_points, strict=True)
         )
         refit, fit_points = centres, ends
@@ -848,6 +962,28 @@ def _settle(
         if settled:
             break
     return model, refit, fit_points
+
+
+def _level_depth_m(v_mm: float, power_ab: FloatArray, f: float) -> float:
+    """The depth (m) whose focus power P̄ is a bracket level's mean power: the table's mean v
+    over two powers P̄ ∓ d (d their half-difference on the axis read) is ``v_mm`` exactly — the
+    mean of v is not v of the mean power (v is convex in P: ~0.3 µm at h = 90 µm)."""
+    d = 0.5 * float(power_ab[1] - power_ab[0])
+    power = (1.0 / f - 1.0 / v_mm) * MM_PER_M  # dioptres: P of v_mm itself
+    for _ in range(LEVEL_NEWTON_STEPS):
+        va, vb = (1.0 / (1.0 / f - q / MM_PER_M) for q in (power - d, power + d))
+        power -= (0.5 * (va + vb) - v_mm) / (0.5 * (va * va + vb * vb) / MM_PER_M)
+    return 1.0 / power if power != 0 else math.inf
+
+
+def _combine_levels(levels: list[DepthPoint]) -> DepthPoint:
+    """One level from repeated sweeps of one depth: each end combined as a point
+    (:func:`combine_sweeps`), the mean power kept from the sweep nearest the combined ends."""
+    if len(levels) == 1:
+        return levels[0]
+    a = combine_sweeps(levels)
+    b = combine_sweeps([dataclasses.replace(p, counts_exact=p.pair_at) for p in levels])
+    return dataclasses.replace(a, pair_at=b.at)
 
 
 def _misfit_sigma(model: ModelFit, points: list[DepthPoint]) -> float:
