@@ -146,7 +146,7 @@ class CoreStep:
             pred = pipeline.predicted_depth()
             sigma = None if pred is None else pred[1]
             if tag.focus_counts is not None:
-                plan = pipeline.plan_burst(tag.focus_counts)
+                plan = pipeline.plan_burst_for(tag.focus_counts, pred)
         tracks = self._track(frame, tag, out)
         published = tracks.get(self.trackers.kinds[0])
         rate = None if published is None else direction_rate_deg_s(published)

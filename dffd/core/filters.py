@@ -132,31 +132,36 @@ class CF2:
     def __init__(self, k1: float, k2: float) -> None:
         self.k1, self.k2 = k1, k2
         self._f: Mat2 = (-k1, 1.0, -k2, 0.0)
-        self.x: FloatArray | None = None
+        self._x: Vec2 | None = None  # floats: a 2-vector per frame (see _step2)
+
+    @property
+    def x(self) -> FloatArray | None:
+        """The state [x̂1, x̂2] (a new array)."""
+        return None if self._x is None else np.array(self._x)
 
     @property
     def z(self) -> float | None:
         """Depth estimate."""
-        return None if self.x is None else float(self.x[0])
+        return None if self._x is None else self._x[0]
 
     @property
     def beta(self) -> float | None:
         """Estimated bias β of ψ_m (m/s): in steady state x̂2 → −β, so β̂ = −x̂2."""
-        return None if self.x is None else -float(self.x[1])
+        return None if self._x is None else -self._x[1]
 
     def reset(self, z: float, beta: float = 0.0) -> None:
         """Initialise the state (``beta`` is the bias of ψ_m)."""
-        self.x = np.array([z, -beta])
+        self._x = (float(z), -float(beta))
 
     def step(self, dt: float, y: float, psi: float, lam: float = 0.0) -> float:
         """Advance by ``dt``: ``ψ_m = psi`` held, ``z_m = y e^{λτ}`` (``y`` at the step start)."""
-        if self.x is None:
+        if self._x is None:
             self.reset(y)
-            assert self.x is not None
+            assert self._x is not None
         phi, gam_y = _exp_input2(self._f, (self.k1 * y, self.k2 * y), lam, dt)
         _, gam_psi = _zoh2(self._f, (psi, 0.0), dt)
-        self.x = _step2(phi, self.x, (gam_y[0] + gam_psi[0], gam_y[1] + gam_psi[1]))
-        return float(self.x[0])
+        self._x = _step2(phi, self._x, (gam_y[0] + gam_psi[0], gam_y[1] + gam_psi[1]))
+        return self._x[0]
 
     def transfer(self, s: complex) -> tuple[complex, complex, complex]:
         """(T1, T2, Fψ) at Laplace variable ``s``: ẑ = T1 z_m + Fψ ψ_m and T2 = Fψ · s."""
@@ -199,21 +204,26 @@ class LPVObserver:
         if gains.k1_0 <= 0 or gains.k2 <= 0 or gains.rho_min >= gains.rho_max:
             raise ValueError("LPV gains need k1_0 > 0, k2 > 0 and rho_min < rho_max")
         self.gains = gains
-        self.x: FloatArray | None = None
+        self._x: Vec2 | None = None  # floats: a 2-vector per frame (see _step2)
+
+    @property
+    def x(self) -> FloatArray | None:
+        """The state [ẑ, b̂] (a new array)."""
+        return None if self._x is None else np.array(self._x)
 
     @property
     def z(self) -> float | None:
         """Depth estimate."""
-        return None if self.x is None else float(self.x[0])
+        return None if self._x is None else self._x[0]
 
     @property
     def b(self) -> float | None:
         """Estimated additive disturbance on ż (m/s)."""
-        return None if self.x is None else float(self.x[1])
+        return None if self._x is None else self._x[1]
 
     def reset(self, z: float, b: float = 0.0) -> None:
         """Initialise the state."""
-        self.x = np.array([z, b])
+        self._x = (float(z), float(b))
 
     def closed_loop(self, rho: float) -> tuple[FloatArray, FloatArray]:
         """(A(ρ) − K(ρ)C, K(ρ)): error matrix and gain at ``rho``."""
@@ -232,14 +242,14 @@ class LPVObserver:
 
         With the transported measurement ``λ = −ρ``; ``λ = 0`` is a held measurement.
         """
-        if self.x is None:
+        if self._x is None:
             self.reset(y)
-            assert self.x is not None
+            assert self._x is not None
         g = self.gains
         k1 = g.k1_0 - min(max(rho, g.rho_min), g.rho_max)
         phi, gam = _exp_input2((-rho - k1, 1.0, -g.k2, 0.0), (k1 * y, g.k2 * y), lam, dt)
-        self.x = _step2(phi, self.x, gam)
-        return float(self.x[0])
+        self._x = _step2(phi, self._x, gam)
+        return self._x[0]
 
 
 @dataclass(frozen=True, slots=True)
@@ -283,31 +293,43 @@ class DepthKF:
 
     def __init__(self, noise: KFNoise, trace: list[KFTraceEvent] | None = None) -> None:
         self.noise = noise
-        self.x: FloatArray | None = None
-        self.p: FloatArray = np.zeros((2, 2))
+        # [z, b] and the row-major P on floats (a 2-vector and a 2×2 per frame: NumPy's
+        # per-call cost was most of a prediction); ``x`` and ``p`` give them as arrays
+        self._x: Vec2 | None = None
+        self._p: Mat2 = (0.0, 0.0, 0.0, 0.0)
         # every reset, prediction (with its Φ and Q) and update, for an offline smoother
         # (dffd.core.smoother); None: not recorded (the daemon)
         self.trace = trace
 
     @property
+    def x(self) -> FloatArray | None:
+        """The state [z, b] (a new array)."""
+        return None if self._x is None else np.array(self._x)
+
+    @property
+    def p(self) -> FloatArray:
+        """The 2×2 error covariance (a new array)."""
+        return np.array(self._p).reshape(2, 2)
+
+    @property
     def z(self) -> float | None:
         """Depth estimate."""
-        return None if self.x is None else float(self.x[0])
+        return None if self._x is None else self._x[0]
 
     @property
     def b(self) -> float | None:
         """Estimated additive disturbance on ż (m/s), the LPV observer's second state."""
-        return None if self.x is None else float(self.x[1])
+        return None if self._x is None else self._x[1]
 
     @property
     def sigma(self) -> float | None:
         """Standard deviation of the depth estimate."""
-        return None if self.x is None else math.sqrt(max(float(self.p[0, 0]), 0.0))
+        return None if self._x is None else math.sqrt(max(self._p[0], 0.0))
 
     def reset(self, z: float, sigma_z: float) -> None:
         """Initialise at ``z`` with uncertainty ``sigma_z`` and b = 0."""
-        self.x = np.array([z, 0.0])
-        self.p = np.diag([sigma_z**2, self.noise.sigma_b0**2])
+        self._x = (float(z), 0.0)
+        self._p = (float(sigma_z**2), 0.0, 0.0, float(self.noise.sigma_b0**2))
         if self.trace is not None:
             self.trace.append(KFTraceEvent("reset", self.x, self.p))
 
@@ -321,24 +343,24 @@ class DepthKF:
 
     def predict(self, ratio: float, dt: float) -> None:
         """Propagate over ``dt`` with the size ratio ``s_k/s_{k+1}``."""
-        if self.x is None or dt <= 0:
+        if self._x is None or dt <= 0:
             return
         ratio = max(ratio, 1e-6)
         lam = -math.log(ratio)  # = ∫ρ dt
         g = dt if abs(lam) < 1e-9 else dt * (1.0 - ratio) / lam  # as transition()
-        z, b = float(self.x[0]), float(self.x[1])
+        z, b = self._x
         n = self.noise
         qz = (n.sigma_rho * z) ** 2 * dt
         qb = n.sigma_b**2
-        p00, p01, p10, p11 = _mat(self.p)
+        p00, p01, p10, p11 = self._p
         # Φ P Φᵀ + Q with Φ = [[ratio, g], [0, 1]], written out (a 2×2 per frame)
         a00, a01 = ratio * p00 + g * p10, ratio * p01 + g * p11
-        self.x = np.array([ratio * z + g * b, b])
-        self.p = np.array(
-            [
-                [a00 * ratio + a01 * g + qz + qb * dt**3 / 3, a01 + qb * dt**2 / 2],
-                [p10 * ratio + p11 * g + qb * dt**2 / 2, p11 + qb * dt],
-            ]
+        self._x = (ratio * z + g * b, b)
+        self._p = (
+            a00 * ratio + a01 * g + qz + qb * dt**3 / 3,
+            a01 + qb * dt**2 / 2,
+            p10 * ratio + p11 * g + qb * dt**2 / 2,
+            p11 + qb * dt,
         )
         if self.trace is not None:
             q = np.array([[qz + qb * dt**3 / 3, qb * dt**2 / 2], [qb * dt**2 / 2, qb * dt]])
@@ -347,25 +369,25 @@ class DepthKF:
 
     def update(self, y: float, sigma_y: float) -> float:
         """Correct with a depth measurement ``y`` of standard deviation ``sigma_y``; innovation."""
-        if self.x is None:
+        if self._x is None:
             self.reset(y, sigma_y)
             return 0.0
-        x0, x1 = float(self.x[0]), float(self.x[1])
-        p00, p01, p10, p11 = _mat(self.p)
+        x0, x1 = self._x
+        p00, p01, p10, p11 = self._p
         r = sigma_y**2
         s = p00 + r
         k0, k1 = p00 / s, p10 / s
         innov = y - x0
-        self.x = np.array([x0 + k0 * innov, x1 + k1 * innov])
+        self._x = (x0 + k0 * innov, x1 + k1 * innov)
         # Joseph form keeps P symmetric positive definite: (I − K C) P (I − K C)ᵀ + K R Kᵀ with
         # C = [1, 0], written out on floats (a 2×2 per measurement)
         a00, a01 = (1.0 - k0) * p00, (1.0 - k0) * p01
         a10, a11 = p10 - k1 * p00, p11 - k1 * p01
-        self.p = np.array(
-            [
-                [a00 * (1.0 - k0) + k0 * k0 * r, a01 - a00 * k1 + k0 * k1 * r],
-                [a10 * (1.0 - k0) + k1 * k0 * r, a11 - a10 * k1 + k1 * k1 * r],
-            ]
+        self._p = (
+            a00 * (1.0 - k0) + k0 * k0 * r,
+            a01 - a00 * k1 + k0 * k1 * r,
+            a10 * (1.0 - k0) + k1 * k0 * r,
+            a11 - a10 * k1 + k1 * k1 * r,
         )
         if self.trace is not None:
             self.trace.append(KFTraceEvent("update", self.x, self.p, y=y, r=r))
@@ -438,7 +460,8 @@ def _exp_input2(m: Mat2, u0: Vec2, lam: float, dt: float) -> tuple[Mat2, Vec2]:
     return phi, _solve2(shifted, det, rhs)
 
 
-def _step2(phi: Mat2, x: FloatArray, gam: Vec2) -> FloatArray:
-    """phi @ x + gam as a new 2-vector."""
-    x0, x1 = float(x[0]), float(x[1])
-    return np.array([phi[0] * x0 + phi[1] * x1 + gam[0], phi[2] * x0 + phi[3] * x1 + gam[1]])
+def _step2(phi: Mat2, x: Vec2, gam: Vec2) -> Vec2:
+    """phi @ x + gam on floats (the fixed-gain filters' states: a new array per frame and the
+    float conversions back were most of a step)."""
+    x0, x1 = x
+    return phi[0] * x0 + phi[1] * x1 + gam[0], phi[2] * x0 + phi[3] * x1 + gam[1]

@@ -301,7 +301,12 @@ class Pipeline:
         off-centre by the target's motion biased the vertex along the motion (measured: z_m
         error ≈ 0.07 s × ż on the reference simulator with a centred-on-now bracket).
         """
-        pred = self.predicted_depth()
+        return self.plan_burst_for(current_counts, self.predicted_depth())
+
+    def plan_burst_for(
+        self, current_counts: int, pred: tuple[float, float] | None
+    ) -> tuple[int, int, int]:
+        """:meth:`plan_burst` from ``pred``, the :meth:`predicted_depth` the caller holds."""
         z, s = (None, None) if pred is None else pred
         if z is not None and self._prev is not None and self._diff_rate is not None:
             z = z * math.exp(-self._diff_rate * self.config.plan_lead_s)

@@ -22,6 +22,7 @@ Pure; numpy on 3×3 matrices.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -55,16 +56,23 @@ class ErrorCovariance:
 
     def __init__(self, n: int) -> None:
         self.n = n
-        self.p: FloatArray = np.zeros((n + 1, n + 1))
+        # P of [e, ε] as rows of floats: four of these step on every frame, and NumPy's
+        # per-call cost on 3×3 arrays was most of the cost (``p`` gives the array)
+        self._rows: list[list[float]] = [[0.0] * (n + 1) for _ in range(n + 1)]
         self.pz: list[float] = [0.0] * (n * n)  # row-major n × n
         self.pb: list[float] | None = [0.0] * (n * n)  # None once its weight is 0 for good
         self.weights: tuple[float, float] = (0.0, 0.0)  # (w_z, w_b), set by the owner
 
     @property
+    def p(self) -> FloatArray:
+        """The measurement-driven part of the covariance of ``[e, ε]`` (a new array)."""
+        return np.array(self._rows)
+
+    @property
     def var_z(self) -> float:
         """Variance of the depth error."""
         wz, wb = self.weights
-        v = float(self.p[0, 0]) + wz * self.pz[0]
+        v = self._rows[0][0] + wz * self.pz[0]
         if self.pb is not None:
             v += wb * self.pb[0]
         return max(v, 0.0)
@@ -73,7 +81,7 @@ class ErrorCovariance:
         """The whole covariance of ``[e, ε]`` at the current weights."""
         n = self.n
         wz, wb = self.weights
-        p = self.p.copy()
+        p = np.array(self._rows)
         p[:n, :n] += wz * np.array(self.pz).reshape(n, n)
         if self.pb is not None:
             p[:n, :n] += wb * np.array(self.pb).reshape(n, n)
@@ -82,7 +90,7 @@ class ErrorCovariance:
     def clone(self) -> ErrorCovariance:
         """An independent copy."""
         out = ErrorCovariance(self.n)
-        out.p = self.p.copy()
+        out._rows = [row[:] for row in self._rows]
         out.pz = list(self.pz)
         out.pb = None if self.pb is None else list(self.pb)
         out.weights = self.weights
@@ -100,13 +108,13 @@ class ErrorCovariance:
         Written out on floats: it runs for four estimators on every frame, and NumPy's
         per-call overhead on 3×3 arrays is most of the cost (measured ~4× slower).
         """
-        rows = self.p.tolist()
+        rows = self._rows
         if self.n == 1:
             (a, c), (_, d) = rows
             f, g0 = phi[0], g[0]
             u = f * c - g0 * d
             e = f * f * a - 2.0 * f * c * g0 + d * g0 * g0
-            self.p = np.array([[e, ratio * u], [ratio * u, ratio * ratio * d]])
+            self._rows = [[e, ratio * u], [ratio * u, ratio * ratio * d]]
             self.pz = [f * f * self.pz[0] + qz[0]]
             if self.pb is not None:
                 self.pb = [f * f * self.pb[0] + qb[0]]
@@ -121,7 +129,7 @@ class ErrorCovariance:
         e01 = b00 * p10 + b01 * p11 - h0 * g1 - g0 * h1 + d * g0 * g1
         e11 = b10 * p10 + b11 * p11 - 2.0 * h1 * g1 + d * g1 * g1
         u0, u1 = ratio * (h0 - g0 * d), ratio * (h1 - g1 * d)
-        self.p = np.array([[e00, e01, u0], [e01, e11, u1], [u0, u1, ratio * ratio * d]])
+        self._rows = [[e00, e01, u0], [e01, e11, u1], [u0, u1, ratio * ratio * d]]
         self.pz = _sandwich2(phi, self.pz, qz)
         if self.pb is not None:
             self.pb = _sandwich2(phi, self.pb, qb)
@@ -130,27 +138,26 @@ class ErrorCovariance:
         """The held measurement becomes a new one of variance ``var_new``, correlated ``corr``
         with the old one: ``ε ← c ε + u``, ``c = corr σ_new/σ_old``, var u = (1−corr²) var_new."""
         n = self.n
-        var_old = float(self.p[n, n])
+        rows = self._rows  # in place: no other covariance shares these lists
+        var_old = rows[n][n]
         c = corr * math.sqrt(var_new / var_old) if var_old > 0 and corr > 0 else 0.0
         # T P Tᵀ with T = diag(1, …, 1, c): the last row and column scaled by c, the corner by
         # c² (on floats: the same products as the matrix form, whose other terms are zeros)
-        rows = self.p.tolist()
         for i in range(n):
             rows[i][n] = rows[i][n] * c
             rows[n][i] = c * rows[n][i]
         rows[n][n] = c * rows[n][n] * c + ((1.0 - corr * corr) * var_new if c else var_new)
-        self.p = np.array(rows)
 
-    def kalman_update(self, k: FloatArray) -> None:
+    def kalman_update(self, k: Sequence[float] | FloatArray) -> None:
         """``e ← (I − K C) e − K ε`` (the held measurement just replaced)."""
         n = self.n
         # T P Tᵀ written out on floats (a few per burst; NumPy's per-call cost on 3×3 arrays was
         # most of the time), T = I with T[:n, 0] −= k and T[:n, n] = −k
         t = [[1.0 if i == j else 0.0 for j in range(n + 1)] for i in range(n + 1)]
-        for i, ki in enumerate(k.tolist()):
-            t[i][0] -= ki
-            t[i][n] = -ki
-        self.p = np.array(_congruence(t, self.p.tolist()))
+        for i, ki in enumerate(k):
+            t[i][0] -= float(ki)
+            t[i][n] = -float(ki)
+        self._rows = _congruence(t, self._rows)
         tn = [row[:n] for row in t[:n]]
         self.pz = _flat(_congruence(tn, _square(self.pz, n)))
         if self.pb is not None:
@@ -159,17 +166,18 @@ class ErrorCovariance:
     def innovation_variance(self) -> float:
         """Variance of the innovation ``ν = y − ẑ = e_z + ε`` (``e = x − x̂``)."""
         n = self.n
-        return float(self.var_z + self.p[n, n] + 2.0 * self.p[0, n])
+        rows = self._rows
+        return self.var_z + rows[n][n] + 2.0 * rows[0][n]
 
     def start(self, var_meas: float, var_second: float) -> None:
         """A filter initialised at a measurement: ``e_z = −ε`` exactly."""
         n = self.n
-        p = np.zeros((n + 1, n + 1))
-        p[0, 0] = p[n, n] = var_meas
-        p[0, n] = p[n, 0] = -var_meas
+        p = [[0.0] * (n + 1) for _ in range(n + 1)]
+        p[0][0] = p[n][n] = float(var_meas)
+        p[0][n] = p[n][0] = -float(var_meas)
         if n == 2:
-            p[1, 1] = var_second
-        self.p = p
+            p[1][1] = float(var_second)
+        self._rows = p
         self.pz = [0.0] * (n * n)
         if self.pb is not None:
             self.pb = [0.0] * (n * n)
@@ -178,8 +186,8 @@ class ErrorCovariance:
         """Take ``other``'s depth error and measurement block (a seeded filter; others zeroed)."""
         n, m = self.n, other.n
         idx = [0, m] if n == 1 else [0, 1, m]
-        rows = other.p.tolist()
-        self.p = np.array([[rows[i][j] for j in idx] for i in idx])
+        rows = other._rows
+        self._rows = [[rows[i][j] for j in idx] for i in idx]
         self.pz = [other.pz[0]] if n == 1 else list(other.pz)
         if self.pb is not None:
             src = other.pb if other.pb is not None else [0.0] * (m * m)
@@ -386,8 +394,8 @@ class Uncertainty:
         for err in self.errors.values():
             err.replace_measurement(var, corr)
         p00 = float(kf_p[0, 0])
-        gain = np.array([p00, float(kf_p[1, 0])]) / (p00 + var)
-        kf.kalman_update(gain)
+        den = p00 + var
+        kf.kalman_update((p00 / den, float(kf_p[1, 0]) / den))
         self.measured_sigma = sigma
         return sigma
 
