@@ -52,7 +52,8 @@ __all__ = ["SERVICE_TRACKERS", "CoreStep", "Feedback", "StepResult"]
 SERVICE_TRACKERS: tuple[TrackerKind, ...] = ("mmae",)
 
 
-@dataclass(frozen=True, slots=True)
+# Not frozen, to be treated as read-only (as StepResult below): built on every frame.
+@dataclass(slots=True)
 class Feedback:
     """What the scheduler learns from one processed frame (``Scheduler.on_estimate``)."""
 

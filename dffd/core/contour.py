@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, cast
 
 import cv2
 import numpy as np
@@ -424,7 +424,7 @@ def find_target(
             return None
         min_radius_px /= downscale
     binary = _otsu_mask(gray, x, y, rw, rh, downscale)
-    centre = np.array([rw / 2.0, rh / 2.0])
+    cx, cy = rw / 2.0, rh / 2.0
     best: tuple[float, npt.NDArray[np.int32]] | None = None
     min_area = math.pi * min_radius_px**2
     # A chain of n pixels (steps of at most √2) encloses at most (n√2)²/(4π) = n²/(2π) px²
@@ -433,9 +433,10 @@ def find_target(
     for mask in (binary, cv2.bitwise_not(binary)):
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         for raw in contours:
-            if len(raw) ** 2 < min_points_sq:
+            cnt = cast("npt.NDArray[np.int32]", raw)  # (n, 1, 2) int32 chains, as they come
+            n = len(cnt)
+            if n * n < min_points_sq:
                 continue
-            cnt = np.asarray(raw, dtype=np.int32)
             bx, by, bw, bh = cv2.boundingRect(cnt)
             if bx <= 0 or by <= 0 or bx + bw >= rw or by + bh >= rh:
                 continue  # touches the region border: background or a cut-off object
@@ -444,8 +445,9 @@ def find_target(
                 continue
             perimeter = float(cv2.arcLength(cnt, closed=True))
             circularity = 4 * math.pi * area / max(perimeter**2, 1e-9)
-            m = cnt.reshape(-1, 2).mean(axis=0)
-            dist = float(np.hypot(*(m - centre)))
+            # the chain's mean: its integer sums are exact (NumPy's float mean is too), / n
+            sx, sy = cnt.reshape(-1, 2).sum(axis=0, dtype=np.int64).tolist()
+            dist = float(np.hypot(sx / n - cx, sy / n - cy))
             score = area * circularity / (1.0 + dist / math.sqrt(area))
             if best is None or score > best[0]:
                 best = (score, cnt)
@@ -454,8 +456,11 @@ def find_target(
     poly = best[1].reshape(-1, 2).astype(np.float64)
     if downscale > 1:
         # pixel i of the copy averages pixels d·i … d·i + d − 1: its centre is d·i + (d − 1)/2
-        poly = poly * downscale + (downscale - 1) / 2.0
-    return poly + np.array([x, y], dtype=np.float64)
+        poly *= downscale
+        poly += (downscale - 1) / 2.0
+    if x or y:
+        poly += np.array([x, y], dtype=np.float64)
+    return poly
 
 
 # -- geometry helpers (public: the pipeline and tests use them) -----------------------------

@@ -18,7 +18,7 @@ from dffd.core.filters import CF1, CF2, DepthKF, KFTraceEvent, LPVGains, LPVObse
 from dffd.core.filters import cf2_gains as _cf2_gains
 from dffd.core.lens import Lens
 from dffd.core.noise import model_sigma_v_mm
-from dffd.core.outputs import EstimatorName, Measurement
+from dffd.core.outputs import ESTIMATORS, EstimatorName, Measurement
 from dffd.core.uncertainty import Uncertainty
 
 if TYPE_CHECKING:
@@ -86,6 +86,19 @@ class EstimatorBank:
         if name == "kf":
             return self.kf.z
         return None
+
+    def depths(self, measured: float | None) -> dict[str, float | None]:
+        """Every estimator's depth in ``ESTIMATORS``' order (``measured`` first, as given), all
+        None before the first burst: :meth:`depth` of each name in one call (every frame)."""
+        if not self.initialised:
+            return dict.fromkeys(ESTIMATORS)
+        return {
+            "measured": measured,
+            "cf1": self.cf1.z if self.known_size is not None else None,
+            "cf2": self.cf2.z,
+            "lpv": self.lpv.z,
+            "kf": self.kf.z,
+        }
 
     @property
     def sigma(self) -> float | None:

@@ -75,7 +75,9 @@ class PlanConfig:
     depth_range_m: tuple[float, float] = (1.5, 12.0)  # initial bracket when nothing is known
 
 
-@dataclass(frozen=True, slots=True)
+# Not frozen, to be treated as read-only: a frozen dataclass sets each field through
+# object.__setattr__, and a burst is fitted up to three times (motion compensation).
+@dataclass(slots=True)
 class BurstFit:
     """Result of fitting ``g = α v0² + β v0 + γ`` to one burst (α in 1/mm², v in mm)."""
 

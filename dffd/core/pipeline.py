@@ -75,7 +75,6 @@ logger = logging.getLogger(__name__)
 # Sizes kept for the burst compensation and the transport of a burst's depth: ~8.5 s at 30 fps,
 # more than a rolling burst's span (rolling_max_span_s) plus the wait for its tracking frame.
 SIZE_HISTORY_FRAMES = 256
-_FILTERS: tuple[EstimatorName, ...] = ESTIMATORS[1:]  # the bank's estimators (not "measured")
 # A frame gives a size when its edge profile, this many log-parabola widths, fits in the normal
 # lines (±search_px): wider (the full-range brackets' outer frames, fast focus transits) the
 # curvature correction of r fails (synthetic discs of 20/40 px: r −0.05…−0.56 px at widths of
@@ -595,15 +594,9 @@ class Pipeline:
     ) -> Estimate:
         cfg = self.config
         bank = self._bank
-        # {name: self._depth(name)} for ESTIMATORS, in their order, without the per-name dispatch
-        # (every frame with a contour): none before the bank's first burst
-        depth: dict[str, float | None]
-        if bank.initialised:
-            depth = {"measured": self._last_measured}
-            for name in _FILTERS:
-                depth[name] = bank.depth(name)
-        else:
-            depth = dict.fromkeys(ESTIMATORS)
+        # {name: self._depth(name)} for ESTIMATORS, in their order, in one call (every frame
+        # with a contour): none before the bank's first burst
+        depth = bank.depths(self._last_measured)
         sigma_by = bank.sigmas(depth)
         z = depth[cfg.best]
         h, w = frame.image.shape[:2]

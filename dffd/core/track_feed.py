@@ -29,7 +29,9 @@ from dffd.core.tracking3d import CameraModel, Tracker3DConfig, unit_size_point_o
 FloatArray = npt.NDArray[np.float64]
 
 
-@dataclass(frozen=True, slots=True)
+# Not frozen, to be treated as read-only: a frozen dataclass sets each field through
+# object.__setattr__, and one is built on every tracking frame.
+@dataclass(slots=True)
 class FeedFrame:
     """One tracking frame: time, centroid, pan/tilt and normalised size ``s`` (= R/z)."""
 
