@@ -25,7 +25,7 @@ from dffd.core.noise import (
 )
 from dffd.core.outputs import Measurement
 from dffd.core.synthetic import synthetic_lens
-from dffd.core.uncertainty import ErrorCovariance, Uncertainty
+from dffd.core.uncertainty import ErrorCovariance, Uncertainty, _congruence, _congruence_loop
 from dffd.wiring import pipeline_config
 
 
@@ -401,3 +401,20 @@ def test_process_noise_of_the_sigma_after_the_size_statistics(mode: ProcessNoise
         assert w[1] == 0.0
     else:
         assert w == kf_weights
+
+
+def test_written_out_congruences_equal_the_loop_bit_for_bit() -> None:
+    """T P Tᵀ of 2×2 and 3×3 written out gives the loop's sums exactly (signed zeros too: each
+    sum starts from 0.0), on random matrices with zeros and ones as kalman_update's T has."""
+    rng = np.random.default_rng(5)
+    for size in (2, 3):
+        for _ in range(500):
+            t = rng.normal(size=(size, size))
+            p = rng.normal(size=(size, size))
+            t[rng.random((size, size)) < 0.3] = 0.0
+            t[rng.random((size, size)) < 0.2] = -0.0
+            t[rng.random((size, size)) < 0.2] = 1.0
+            p[rng.random((size, size)) < 0.2] = -0.0
+            got = np.array(_congruence(t.tolist(), p.tolist()))
+            want = np.array(_congruence_loop(t.tolist(), p.tolist()))
+            assert got.tobytes() == want.tobytes()

@@ -82,6 +82,10 @@ class TrackerConfig:
     max_passes: int = 3
     curvature_correction: bool = True  # add σ²/(2r) to r (kernels.fit_pass)
     refine_px: float = 0.3
+    # Keep the kept pass's gradient samples on each observation (``edge_samples``: the edge
+    # moments' input, the focus measures other than the peak gradient); the pipeline turns it
+    # off under ``peak_gradient``, where nothing reads them (five array copies a fit saved).
+    edge_samples: bool = True
 
 
 class EdgeSamples(NamedTuple):
@@ -168,7 +172,7 @@ class ContourTracker:
         # same values as NumPy's axis-0 reduction)
         self._box: Box | None = None
         self._c = (math.nan, math.nan)
-        self._velocity = np.zeros(2)  # centroid px / s
+        self._velocity = (0.0, 0.0)  # centroid px / s (floats: read and set every frame)
         self._t: float | None = None
         self._polarity = 1.0  # +1: intensity drops outward (bright target)
         self._bad_frames = 0
@@ -206,7 +210,7 @@ class ContourTracker:
         """Drop the contour."""
         self._points = None
         self._box = None
-        self._velocity = np.zeros(2)
+        self._velocity = (0.0, 0.0)
         self._t = None
         self._bad_frames = 0
         self._start_gradient = None
@@ -216,7 +220,7 @@ class ContourTracker:
         pts = np.empty((self.config.n_normals, 2))
         kernel_dispatch.current().resample(np.ascontiguousarray(points, dtype=np.float64), pts)
         self._points = pts
-        self._velocity = np.zeros(2)
+        self._velocity = (0.0, 0.0)
         self._t = t
         self._bad_frames = 0
         self._polarity, box = self._estimate_polarity(gray, pts)
@@ -244,7 +248,7 @@ class ContourTracker:
         if self._points is None or self._t is None or self._box is None:
             raise RuntimeError("ContourTracker.update called without an active contour")
         dt = max(t - self._t, 0.0)
-        vx, vy = self._velocity.tolist()
+        vx, vy = self._velocity
         sx, sy = vx * dt, vy * dt  # the constant-velocity step (floats: NumPy's arithmetic)
         predicted = self._points + np.array([sx, sy])
         # the predicted box, exactly: rounding is monotonic, so min(x + s) = min(x) + s
@@ -268,8 +272,9 @@ class ContourTracker:
                 ox, oy = self._c
                 nx, ny = obs.centroid
                 # alpha-filtered velocity: a single noisy frame must not throw the prediction
-                self._velocity = np.array(
-                    [0.6 * vx + 0.4 * (nx - ox) / dt, 0.6 * vy + 0.4 * (ny - oy) / dt]
+                self._velocity = (
+                    0.6 * vx + 0.4 * (nx - ox) / dt,
+                    0.6 * vy + 0.4 * (ny - oy) / dt,
                 )
             self._points, self._box, self._c = obs.points, fit.box, obs.centroid
             self._bad_frames = 0
@@ -351,7 +356,7 @@ class ContourTracker:
         edge_sigma2 = res[layout.OUT_EDGE_SIGMA2]
         ok = res[layout.OUT_OK] != 0
         samples = None
-        if ok and st[layout.ST_HAS_WINDOW + kept]:
+        if ok and cfg.edge_samples and st[layout.ST_HAS_WINDOW + kept]:
             # the focus measure's input: the gradient samples of the pass kept (copies: the
             # workspace is reused by the next fit)
             scratch = ws.scratch[kept]

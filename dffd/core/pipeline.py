@@ -181,6 +181,8 @@ class Pipeline:
         tcfg = config.tracker
         if tcfg.n_normals != config.n_normals or tcfg.search_px != config.search_px:
             tcfg = replace(tcfg, n_normals=config.n_normals, search_px=config.search_px)
+        if config.focus_measure == "peak_gradient" and tcfg.edge_samples:
+            tcfg = replace(tcfg, edge_samples=False)  # no edge moments are asked for
         self._tracker = ContourTracker(tcfg)
         self._settings = FocusSettings(lens)
         self._bursts = BurstAssembler(

@@ -22,6 +22,10 @@ class SizeHistory:
             raise ValueError(f"a size history needs at least 2 frames, got {maxlen}")
         self._t: deque[float] = deque(maxlen=maxlen)
         self._ln: deque[float] = deque(maxlen=maxlen)
+        # the last line() asked and its result, until the next add or clear: a tracking frame
+        # that closes a burst and applies it asks for the same line twice (compensation, then
+        # the transport from the burst's first frame)
+        self._memo: tuple[float, float, tuple[float, float, float] | None] | None = None
 
     def __len__(self) -> int:
         return len(self._t)
@@ -30,6 +34,7 @@ class SizeHistory:
         """Forget every size (a new target, or a gap)."""
         self._t.clear()
         self._ln.clear()
+        self._memo = None
 
     def add(self, t: float, s: float) -> None:
         """Append the size ``s`` (> 0) seen at ``t``; a time not after the last replaces it."""
@@ -38,6 +43,7 @@ class SizeHistory:
             self._ln.pop()
         self._t.append(t)
         self._ln.append(math.log(s))
+        self._memo = None
 
     def line(self, t0: float, t1: float) -> tuple[float, float, float] | None:
         """Least-squares line through ln s of the frames in ``[t0, t1]``: ``(t_ref, ln s at
@@ -46,6 +52,14 @@ class SizeHistory:
         Over the half second of a burst ``ln s`` is a straight line to well below its per-frame
         noise, and the fit averages that noise (a single frame's size is noisier).
         """
+        memo = self._memo
+        if memo is not None and memo[0] == t0 and memo[1] == t1:
+            return memo[2]
+        out = self._line(t0, t1)
+        self._memo = (t0, t1, out)
+        return out
+
+    def _line(self, t0: float, t1: float) -> tuple[float, float, float] | None:
         # The times increase strictly (add), so the frames from t0 on are a suffix: found from
         # the newest back (a burst's half second, of up to maxlen frames), then summed in order.
         ts, lns = self._t, self._ln

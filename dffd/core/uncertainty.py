@@ -87,6 +87,21 @@ class ErrorCovariance:
             p[:n, :n] += wb * np.array(self.pb).reshape(n, n)
         return p
 
+    def error_block(self) -> tuple[float, ...]:
+        """The depth error's block (``n × n``, row-major) of :meth:`total`, on floats (the same
+        sums: the measurement part, plus each weighted walk in turn)."""
+        n = self.n
+        wz, wb = self.weights
+        rows, pz, pb = self._rows, self.pz, self.pb
+        out = []
+        for i in range(n):
+            for j in range(n):
+                v = rows[i][j] + wz * pz[i * n + j]
+                if pb is not None:
+                    v = v + wb * pb[i * n + j]
+                out.append(v)
+        return tuple(out)
+
     def clone(self) -> ErrorCovariance:
         """An independent copy."""
         out = ErrorCovariance(self.n)
@@ -230,6 +245,7 @@ class Uncertainty:
             "kf": ErrorCovariance(2),
         }
         self._frames: tuple[int, ...] = ()
+        self._weights: tuple[float, float] | None = None  # the last set by _set_weights
         self.measured_sigma: float | None = None  # adapted σ of the last measurement
         self.started = False
 
@@ -338,6 +354,9 @@ class Uncertainty:
 
     def _set_weights(self) -> None:
         w = self.process_weights()
+        if w == self._weights:
+            return  # every covariance has them already (and no b walk if w_b is 0)
+        self._weights = w
         for err in self.errors.values():
             err.weights = w
             if w[1] == 0.0 and err.pb is not None:
@@ -412,8 +431,8 @@ class Uncertainty:
     def kf_covariance(self) -> tuple[float, float, float, float]:
         """The KF's [z, b] error covariance (row-major) at the current process noise."""
         self._set_weights()
-        p = self.errors["kf"].total()
-        return float(p[0, 0]), float(p[0, 1]), float(p[1, 0]), float(p[1, 1])
+        p00, p01, p10, p11 = self.errors["kf"].error_block()
+        return p00, p01, p10, p11
 
     def hand_over(self) -> None:
         """The fixed-gain filters were seeded from the KF: they inherit its error covariance."""
@@ -434,11 +453,79 @@ def _sandwich2(phi: Mat2, p: list[float], q: Mat2) -> list[float]:
 
 
 def _congruence(t: list[list[float]], p: list[list[float]]) -> list[list[float]]:
-    """``T P Tᵀ`` of small square float matrices (rows), each sum in index order."""
+    """``T P Tᵀ`` of small square float matrices (rows), each sum in index order (from 0.0:
+    the same values, signed zeros included, as the loop below; 2×2 and 3×3 written out, the
+    loop's list building and calls were ~60 µs of a burst's update)."""
+    size = len(t)
+    if size == 3:
+        return _congruence3(t, p)
+    if size == 2:
+        return _congruence2(t, p)
+    return _congruence_loop(t, p)
+
+
+def _congruence_loop(t: list[list[float]], p: list[list[float]]) -> list[list[float]]:
+    """:func:`_congruence` of any size (the reference of the written-out ones)."""
     size = len(t)
     a = [[_sum_products(t[i], [p[k][j] for k in range(size)]) for j in range(size)]
          for i in range(size)]  # fmt: skip
     return [[_sum_products(a[i], t[j]) for j in range(size)] for i in range(size)]
+
+
+def _congruence2(t: list[list[float]], p: list[list[float]]) -> list[list[float]]:
+    """:func:`_congruence` of 2×2 matrices written out (the same sums in the same order)."""
+    t0, t1 = t
+    p0, p1 = p
+    t00, t01 = t0
+    t10, t11 = t1
+    p00, p01 = p0
+    p10, p11 = p1
+    a00 = 0.0 + t00 * p00 + t01 * p10
+    a01 = 0.0 + t00 * p01 + t01 * p11
+    a10 = 0.0 + t10 * p00 + t11 * p10
+    a11 = 0.0 + t10 * p01 + t11 * p11
+    return [
+        [0.0 + a00 * t00 + a01 * t01, 0.0 + a00 * t10 + a01 * t11],
+        [0.0 + a10 * t00 + a11 * t01, 0.0 + a10 * t10 + a11 * t11],
+    ]
+
+
+def _congruence3(t: list[list[float]], p: list[list[float]]) -> list[list[float]]:
+    """:func:`_congruence` of 3×3 matrices written out (the same sums in the same order)."""
+    t0, t1, t2 = t
+    p0, p1, p2 = p
+    t00, t01, t02 = t0
+    t10, t11, t12 = t1
+    t20, t21, t22 = t2
+    p00, p01, p02 = p0
+    p10, p11, p12 = p1
+    p20, p21, p22 = p2
+    a00 = 0.0 + t00 * p00 + t01 * p10 + t02 * p20
+    a01 = 0.0 + t00 * p01 + t01 * p11 + t02 * p21
+    a02 = 0.0 + t00 * p02 + t01 * p12 + t02 * p22
+    a10 = 0.0 + t10 * p00 + t11 * p10 + t12 * p20
+    a11 = 0.0 + t10 * p01 + t11 * p11 + t12 * p21
+    a12 = 0.0 + t10 * p02 + t11 * p12 + t12 * p22
+    a20 = 0.0 + t20 * p00 + t21 * p10 + t22 * p20
+    a21 = 0.0 + t20 * p01 + t21 * p11 + t22 * p21
+    a22 = 0.0 + t20 * p02 + t21 * p12 + t22 * p22
+    return [
+        [
+            0.0 + a00 * t00 + a01 * t01 + a02 * t02,
+            0.0 + a00 * t10 + a01 * t11 + a02 * t12,
+            0.0 + a00 * t20 + a01 * t21 + a02 * t22,
+        ],
+        [
+            0.0 + a10 * t00 + a11 * t01 + a12 * t02,
+            0.0 + a10 * t10 + a11 * t11 + a12 * t12,
+            0.0 + a10 * t20 + a11 * t21 + a12 * t22,
+        ],
+        [
+            0.0 + a20 * t00 + a21 * t01 + a22 * t02,
+            0.0 + a20 * t10 + a21 * t11 + a22 * t12,
+            0.0 + a20 * t20 + a21 * t21 + a22 * t22,
+        ],
+    ]
 
 
 def _sum_products(u: list[float], v: list[float]) -> float:
