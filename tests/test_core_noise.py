@@ -22,6 +22,7 @@ from dffd.core.noise import (
     TimeOffset,
     shared_frame_correlation,
     student_factor,
+    t_quantile,
 )
 from dffd.core.outputs import Measurement
 from dffd.core.synthetic import synthetic_lens
@@ -56,6 +57,18 @@ def test_student_factor_widens_the_first_estimates_and_vanishes_later() -> None:
     assert 1.2 < student_factor(5) < 1.45
     assert student_factor(60) == pytest.approx(1.0, abs=0.03)
     assert student_factor(0.2) == student_factor(1)
+
+
+def test_t_quantile_without_scipy_equals_scipys_for_every_dof_used() -> None:
+    # student_factor clamps dof to whole numbers 1-1000 (all of them checked once: within
+    # 6.4e-14); the first 40, where the factor moves, and a sample of the rest (the series grow
+    # with dof).
+    from scipy import stats
+
+    p = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))
+    for dof in [*range(1, 41), 57, 99, 100, 333, 501, 998, 999, 1000]:
+        assert t_quantile(p, dof) == pytest.approx(stats.t.ppf(p, dof), rel=1e-12, abs=0)
+    assert t_quantile(0.75, 3) == pytest.approx(stats.t.ppf(0.75, 3), rel=1e-12)
 
 
 def test_innovation_scale_finds_the_true_noise_ratio() -> None:

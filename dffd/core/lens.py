@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.interpolate import PchipInterpolator
 
 MM_PER_M = 1000.0
 
@@ -41,10 +40,10 @@ class Lens:
     # √((leave-one-out rms² − residual rms²)/2)); 0: not known. A table error is a bias every
     # measurement shares, so it enters the published σ, not the filters (docs/estimation.md §14).
     table_sigma_v_mm: float = 0.0
-    _to_v: PchipInterpolator = field(init=False, repr=False)
-    _to_counts: PchipInterpolator = field(init=False, repr=False)
-    # The same interpolants evaluated one scalar at a time without SciPy's per-call overhead
-    # (the core converts a few values on every frame).
+    # The PCHIP interpolants (SciPy's ``PchipInterpolator(..., extrapolate=False)``, built and
+    # evaluated here with its arithmetic: importing scipy.interpolate cost a start ~0.4 s of
+    # CPU, docs/design.md §5.3), evaluated one scalar at a time (the core converts a few values
+    # on every frame).
     _v_at: _ScalarPchip = field(init=False, repr=False)
     _counts_at: _ScalarPchip = field(init=False, repr=False)
     # (min, max) of focus_v_mm, computed once: v_range_mm runs several times a frame.
@@ -55,12 +54,8 @@ class Lens:
         counts = np.asarray(self.focus_counts, dtype=np.float64)
         v = np.asarray(self.focus_v_mm, dtype=np.float64)
         order = np.argsort(v)
-        object.__setattr__(self, "_to_v", PchipInterpolator(counts, v, extrapolate=False))
-        object.__setattr__(
-            self, "_to_counts", PchipInterpolator(v[order], counts[order], extrapolate=False)
-        )
-        object.__setattr__(self, "_v_at", _ScalarPchip(self._to_v))
-        object.__setattr__(self, "_counts_at", _ScalarPchip(self._to_counts))
+        object.__setattr__(self, "_v_at", _ScalarPchip(counts, v))
+        object.__setattr__(self, "_counts_at", _ScalarPchip(v[order], counts[order]))
         object.__setattr__(self, "_v_range", (min(self.focus_v_mm), max(self.focus_v_mm)))
 
     # -- construction -----------------------------------------------------------------------
@@ -166,7 +161,7 @@ class Lens:
         """Vectorised :meth:`v_from_counts`."""
         lo, hi = self.counts_range
         c = np.clip(np.asarray(counts, dtype=np.float64), lo, hi)
-        return np.asarray(self._to_v(c), dtype=np.float64)
+        return self._v_at.array(c)
 
     def counts_from_v(self, v_mm: float) -> int:
         """Nearest focus counts (rounded) for ``v_mm``; clamps to the table range."""
@@ -204,20 +199,37 @@ class Lens:
 
 
 class _ScalarPchip:
-    """A SciPy piecewise polynomial (no extrapolation) evaluated at one float in Python.
+    """SciPy's ``PchipInterpolator(x, y, extrapolate=False)``, built and evaluated in Python.
 
-    The same arithmetic as ``scipy.interpolate.PPoly.__call__`` (interval ``x_i <= x < x_{i+1}``,
-    the last one closed; ``Σ_k c[K−1−k] s^k`` accumulated from the constant term with
-    ``s = x − x_i``; NaN outside), so the values are bit-identical (tests/test_core_lens.py) at a
-    few percent of its per-call cost.
+    The coefficients are SciPy's (:func:`_pchip_coefficients`); a value has the arithmetic of
+    ``scipy.interpolate.PPoly.__call__`` (interval ``x_i <= x < x_{i+1}``, the last one closed;
+    ``Σ_k c[K−1−k] s^k`` accumulated from the constant term with ``s = x − x_i``; NaN outside),
+    so the values are bit-identical (tests/test_core_lens.py) at a few percent of its per-call
+    cost.
     """
 
-    __slots__ = ("_coeffs", "_x")
+    __slots__ = ("_c", "_coeffs", "_x", "_xa")
 
-    def __init__(self, poly: PchipInterpolator) -> None:
-        self._x: list[float] = [float(b) for b in poly.x]
+    def __init__(self, x: npt.NDArray[np.float64], y: npt.NDArray[np.float64]) -> None:
+        c = _pchip_coefficients(x, y)
+        self._xa = np.asarray(x, dtype=np.float64)
+        self._c = c
+        self._x: list[float] = [float(b) for b in x]
         # Per interval, the coefficients from the constant term up.
-        self._coeffs = [[float(c) for c in poly.c[::-1, i]] for i in range(poly.c.shape[1])]
+        self._coeffs = [[float(k) for k in c[::-1, i]] for i in range(c.shape[1])]
+
+    def array(self, xv: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """Vectorised ``__call__`` (the same operations element by element)."""
+        x, c = self._xa, self._c
+        xv = np.asarray(xv, dtype=np.float64)
+        i = np.clip(np.searchsorted(x, xv, side="right") - 1, 0, len(x) - 2)
+        s = xv - x[i]
+        z = 1.0 * s
+        res = (0.0 + c[3, i] * 1.0) + c[2, i] * z
+        z = z * s
+        res = res + c[1, i] * z
+        res = res + c[0, i] * (z * s)
+        return np.where((xv >= x[0]) & (xv <= x[-1]), res, np.nan)
 
     def __call__(self, xval: float) -> float:
         x = self._x
@@ -241,6 +253,45 @@ class _ScalarPchip:
             if k < last:
                 z *= s
         return res
+
+
+def _pchip_coefficients(
+    x: npt.NDArray[np.float64], y: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """The cubic coefficients (4, n−1), highest power first, of SciPy's PCHIP through (x, y):
+    ``PchipInterpolator._find_derivatives`` then ``CubicHermiteSpline``, the same operations.
+    ``x`` strictly increasing, n >= 2."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    hk = x[1:] - x[:-1]
+    mk = (y[1:] - y[:-1]) / hk
+    if len(y) == 2:  # two points: linear
+        dk = np.array([mk[0], mk[0]])
+    else:
+        smk = np.sign(mk)
+        condition = (smk[1:] != smk[:-1]) | (mk[1:] == 0) | (mk[:-1] == 0)
+        w1 = 2 * hk[1:] + hk[:-1]
+        w2 = hk[1:] + 2 * hk[:-1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            whmean = (w1 / mk[:-1] + w2 / mk[1:]) / (w1 + w2)
+        dk = np.zeros_like(y)
+        dk[1:-1][~condition] = 1.0 / whmean[~condition]
+        dk[0] = _pchip_edge(hk[0], hk[1], mk[0], mk[1])
+        dk[-1] = _pchip_edge(hk[-1], hk[-2], mk[-1], mk[-2])
+    dx = np.diff(x)
+    slope = np.diff(y) / dx
+    t = (dk[:-1] + dk[1:] - 2 * slope) / dx
+    return np.stack((t / dx, (slope - dk[:-1]) / dx - t, dk[:-1], y[:-1]))
+
+
+def _pchip_edge(h0: float, h1: float, m0: float, m1: float) -> float:
+    """SciPy's one-sided three-point end derivative, shape-preserving (``_edge_case``)."""
+    d = ((2 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+    if np.sign(d) != np.sign(m0):
+        return 0.0
+    if np.sign(m0) != np.sign(m1) and abs(d) > 3.0 * abs(m0):
+        return 3.0 * m0
+    return float(d)
 
 
 def _number(value: object, name: str, source: str) -> float:
