@@ -84,6 +84,7 @@ from dffd.daemon.startup import (
     start_camera_transport,
 )
 from dffd.daemon.status import StatusBoard, link_health, video_health
+from dffd.daemon.timeline import StartTimeline
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.mqtt import models
 from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
@@ -194,6 +195,8 @@ class Daemon:
         sim_faults: Any = None,
     ) -> None:
         self.config = config
+        self.timeline = StartTimeline()  # the start-up's steps, logged at DEBUG
+        self.timeline.mark("imported, configuration loaded")
         self.sim_faults = sim_faults
         self.duration_s = duration_s
         self.console = Console(live=live_console)
@@ -297,6 +300,7 @@ class Daemon:
         except WebConfigError as exc:
             raise DaemonError(str(exc)) from exc
         core = build_core(cfg, lens)
+        self.timeline.mark("estimation core built")
         self.dashboard = dashboard.Dashboard(
             self.dashboard_snapshot,
             self._execute,
@@ -305,10 +309,13 @@ class Daemon:
         )
         try:
             async with contextlib.AsyncExitStack() as stack:
+                self.timeline.mark("dashboard built")
                 self._parts.broker = await start_broker(cfg, stack)
+                self.timeline.mark("broker up")
                 port, self._parts.sim_server, rig = await start_camera_transport(
                     cfg, stack, self.sim_faults
                 )
+                self.timeline.mark("camera transport up")
                 source, exposure_s, focus_speed, truth_for = await open_source(cfg, rig, stack)
                 self._parts.source = source
                 self._parts.truth_for = truth_for
@@ -353,6 +360,7 @@ class Daemon:
                     released=self._released,
                 )
                 stack.callback(estimator.stop)
+                self.timeline.mark("estimator thread started")
                 await self._serve(port, source, lens)
         except TimeoutError as exc:
             raise DaemonError(f"start-up timed out: {exc or 'no answer'}") from exc
@@ -374,12 +382,15 @@ class Daemon:
                 async with link:
                     camera = Camera(link, cfg.camera.address, profile_for(cfg.camera.model))
                     assert self.scheduler is not None
+                    self.timeline.mark("VISCA link open")
                     await initialize_camera(
                         camera, lens, cfg.lens.zoom_counts, self.scheduler, self._wake.set
                     )
+                    self.timeline.mark("camera initialised")
                     self.camera = camera
                     actuators = Actuators(camera, self.scheduler, self._wake.set)
                     await source.start()
+                    self.timeline.mark("frame source started")
                     # Automatic acquisition sweeps if nothing is in view; an ROI does not.
                     arm_search(self.scheduler, cfg, time.monotonic())
                     self._results_failed = asyncio.get_running_loop().create_future()
@@ -450,6 +461,7 @@ class Daemon:
         assert sched is not None
         assert estimator is not None
         stalled = False
+        first = True
         while True:
             try:
                 async with asyncio.timeout(FRAME_TIMEOUT_S):
@@ -462,6 +474,9 @@ class Daemon:
                 stalled = True
                 continue
             stalled = False
+            if first:
+                first = False
+                self.timeline.mark("first frame")
             now = time.monotonic()
             self.board.on_frame(now)
             tag = sched.on_frame(frame.index, frame.t)
@@ -562,6 +577,9 @@ class Daemon:
         if self.dashboard is not None:
             self.dashboard.on_result(result.frame, result.step, result.cpu_s)
         if out.measurement is not None:
+            if not self.timeline.marked("first depth published"):
+                m = out.measurement
+                self.timeline.event(f"burst {m.focus_counts} closed: z {m.z_m} ({m.reason})")
             self.board.on_measurement(now, out.measurement)
             payload_m = self.payloads.measurement(out.measurement)
             if payload_m is not None:
@@ -576,6 +594,9 @@ class Daemon:
             if payload_e is not None and not result.step.published:
                 payload_e = without_depth(payload_e)
         if payload_e is not None:
+            self.timeline.mark("first estimate published")
+            if payload_e.z_m is not None:
+                self.timeline.mark("first depth published")
             self.board.on_estimate(now, payload_e)
             log.append("estimate", payload_e)
             publisher.publish(payload_e)
