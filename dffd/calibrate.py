@@ -81,7 +81,7 @@ from dffd.calibrate_fit import (
 from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import DEFAULT_FOCUS_MEASURE, frame_cost
-from dffd.core.lens import MM_PER_M, Lens, LensError
+from dffd.core.lens import MM_PER_M, Lens, LensError, VertexResponse
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.literals import FocusMeasure
 from drivers.sim.resources import reference_camera_file
@@ -352,6 +352,7 @@ def lens_toml(
     if lens.table_sigma_v_mm > 0:  # the table's own standard error (docs/estimation.md §14)
         f_number += f"table_sigma_v_mm = {lens.table_sigma_v_mm:.3e}\n"
     comments = "".join(f"# {line}\n" for line in notes or [])
+    response = _response_toml(lens.vertex_response) if lens.vertex_response is not None else ""
     return (
         "# Focus calibration written by `dffd calibrate` (docs/design.md §3).\n"
         f"# Measured capture latency: {latency_frames} frame(s) -> [capture] latency_frames.\n"
@@ -363,6 +364,26 @@ def lens_toml(
         f"{f_number}"
         f"{zoom}"
         f"focus_table = [\n{rows}\n]\n"
+        f"{response}"
+    )
+
+
+def _response_toml(response: VertexResponse) -> str:
+    """The ``[lens.vertex_response]`` table (docs/estimation.md §21)."""
+
+    def floats(values: tuple[float, ...]) -> str:
+        return "[" + ", ".join(f"{x:.6g}" for x in values) + "]"
+
+    return (
+        "\n# The burst fit's vertex (fitted_h) against the true offset (true_h), in half-\n"
+        "# brackets, measured on the sweeps above; the estimator inverts it (estimation §21).\n"
+        "[lens.vertex_response]\n"
+        f'measure = "{response.measure}"\n'
+        f"half_width_rel = {response.half_width_rel:.6e}\n"
+        f"depth_spread_h = {response.depth_spread_h:.6g}\n"
+        f"n_depths = {response.n_depths}\n"
+        f"true_h = {floats(response.true_h)}\n"
+        f"fitted_h = {floats(response.fitted_h)}\n"
     )
 
 

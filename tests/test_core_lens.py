@@ -13,6 +13,12 @@ from dffd.core.synthetic import synthetic_lens
 from dffd.resources import lens_table
 
 SIM_LENS = lens_table("sim-evi-d100")
+RESPONSE = {
+    "measure": "peak_gradient",
+    "half_width_rel": 2.9e-3,
+    "true_h": [-1.0, 0.0, 1.0],
+    "fitted_h": [-0.9, 0.0, 0.9],
+}
 
 
 def test_loads_the_simulator_lens_file() -> None:
@@ -41,6 +47,26 @@ def test_round_trips_and_thin_lens() -> None:
     assert Lens.from_meta(stated.to_meta()).table_sigma_v_mm == 3e-4
 
 
+def test_the_vertex_response_round_trips_and_old_files_have_none(tmp_path: Path) -> None:
+    """A lens file without ``vertex_response`` (every one before docs/estimation.md §21) loads
+    without one: no correction, as before; one written by ``dffd calibrate`` reads back."""
+    from dffd.calibrate import lens_toml
+
+    assert Lens.from_toml(SIM_LENS).vertex_response is None
+    lens = Lens.from_meta(synthetic_lens().to_meta() | {"vertex_response": RESPONSE})
+    response = lens.vertex_response
+    assert response is not None
+    again = Lens.from_meta(lens.to_meta()).vertex_response
+    assert again is not None
+    assert again.to_meta() == response.to_meta()
+    path = tmp_path / "lens.toml"
+    path.write_text(lens_toml(lens, None, 2, ["a note"]), "utf-8")
+    again = Lens.from_toml(path).vertex_response
+    assert again is not None
+    assert again.to_meta() == response.to_meta()
+    assert again.correct(0.45) == response.correct(0.45)
+
+
 @pytest.mark.parametrize(
     ("change", "field"),
     [
@@ -55,6 +81,10 @@ def test_round_trips_and_thin_lens() -> None:
         ({"focus_table": [[4096, 31.1], [4500.5, 31.3]]}, r"focus_table\[1\] counts"),
         ({"zoom_counts": "tele"}, "zoom_counts"),
         ({"table_sigma_v_mm": -1e-4}, "table_sigma_v_mm"),
+        ({"vertex_response": [0.1]}, "vertex_response must be a table"),
+        ({"vertex_response": RESPONSE | {"fitted_h": [-0.9, 0.1, 0.0]}}, "strictly increasing"),
+        ({"vertex_response": RESPONSE | {"true_h": [-1.0, 0.0]}}, "same length"),
+        ({"vertex_response": RESPONSE | {"half_width_rel": 0.0}}, "half_width_rel"),
     ],
 )
 def test_validation_names_the_field(change: dict[str, object], field: str) -> None:
@@ -125,3 +155,9 @@ def test_pchip_built_here_equals_scipys_on_random_monotone_tables() -> None:
         xs = np.concatenate([x, rng.uniform(x[0], x[-1], 50)])
         assert np.array_equal(ours.array(xs), theirs(xs))
         assert all(ours(float(a)) == float(theirs(a)) for a in xs)
+        # the derivative (the vertex response's slope, which scales a corrected vertex's σ)
+        slope = theirs.derivative()
+        assert all(
+            ours.derivative(float(a)) == pytest.approx(float(slope(a)), rel=1e-12, abs=1e-15)
+            for a in xs
+        )

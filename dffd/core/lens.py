@@ -19,6 +19,11 @@ import numpy as np
 import numpy.typing as npt
 
 MM_PER_M = 1000.0
+# A bracket whose half-width (relative to v) is within this factor of the one a vertex response
+# was measured with gets its correction: the burst planner's brackets are all 3 px of outer blur
+# (± a few % from the motion compensation and the rolling bracket's drift); the wider ones
+# (full-range start-up brackets, a large depth σ) are 1.5-100x wider and have another response.
+RESPONSE_WIDTH_TOLERANCE = 1.25
 
 
 class LensError(ValueError):
@@ -40,6 +45,9 @@ class Lens:
     # √((leave-one-out rms² − residual rms²)/2)); 0: not known. A table error is a bias every
     # measurement shares, so it enters the published σ, not the filters (docs/estimation.md §14).
     table_sigma_v_mm: float = 0.0
+    # The three-point vertex's response to the true offset, measured by `dffd calibrate` on its
+    # sweeps (None: not measured, no correction; docs/estimation.md §21).
+    vertex_response: VertexResponse | None = None
     # The PCHIP interpolants (SciPy's ``PchipInterpolator(..., extrapolate=False)``, built and
     # evaluated here with its arithmetic: importing scipy.interpolate cost a start ~0.4 s of
     # CPU, docs/design.md §5.3), evaluated one scalar at a time (the core converts a few values
@@ -98,6 +106,7 @@ class Lens:
         f_number = meta.get("f_number")
         zoom = meta.get("zoom_counts")
         table_sigma = meta.get("table_sigma_v_mm")
+        response = meta.get("vertex_response")
         return cls(
             name=str(meta.get("name", "unnamed")),
             focal_length_mm=_number(meta.get("focal_length_mm"), "focal_length_mm", source),
@@ -108,6 +117,9 @@ class Lens:
             zoom_counts=None if zoom is None else _integer(zoom, "zoom_counts", source),
             table_sigma_v_mm=(
                 0.0 if table_sigma is None else _number(table_sigma, "table_sigma_v_mm", source)
+            ),
+            vertex_response=(
+                None if response is None else VertexResponse.from_meta(response, source)
             ),
         )
 
@@ -127,6 +139,8 @@ class Lens:
             meta["zoom_counts"] = self.zoom_counts
         if self.table_sigma_v_mm > 0:
             meta["table_sigma_v_mm"] = self.table_sigma_v_mm
+        if self.vertex_response is not None:
+            meta["vertex_response"] = self.vertex_response.to_meta()
         return meta
 
     # -- derived quantities -----------------------------------------------------------------
@@ -198,6 +212,99 @@ class Lens:
         return 0.5 * aperture * abs(v0_mm - v_mm) / v_mm / self.pixel_pitch_mm
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class VertexResponse:
+    """The burst fit's vertex against the true offset, measured by the calibration (§21).
+
+    For bracket centres ``c`` around the closed loop's fixed point ``v*`` of each calibration
+    sweep, the three-point vertex ``v̂(c)`` the estimator fits on the smoothed sweep:
+    ``fitted_h = (v̂ − c)/h`` against ``true_h = (v* − c)/h`` (both in half-brackets h, pooled
+    over the depths), for the focus ``measure`` and the bracket half-width ``half_width_rel``
+    (h / v) it was measured with. Inverted at run time (:meth:`correct`), it maps a burst's
+    fitted offset to the true one: slope 1 across the bracket whatever the PSF, and the fixed
+    point (the table's) unchanged, since ``fitted_h`` is 0 at ``true_h`` 0.
+    """
+
+    measure: str
+    half_width_rel: float
+    true_h: tuple[float, ...]  # increasing, 0 among them
+    fitted_h: tuple[float, ...]  # strictly increasing
+    depth_spread_h: float = 0.0  # rms spread of the depths' responses about the pooled one
+    n_depths: int = 0
+    _inverse: _ScalarPchip = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        src = "vertex_response"
+        t, f = np.asarray(self.true_h, dtype=np.float64), np.asarray(self.fitted_h, np.float64)
+        if len(t) != len(f) or len(t) < 3:
+            raise LensError(f"{src}: true_h and fitted_h need the same length, at least 3")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):
+            raise LensError(f"{src}: true_h and fitted_h must be finite")
+        if np.any(np.diff(t) <= 0) or np.any(np.diff(f) <= 0):
+            raise LensError(f"{src}: true_h and fitted_h must be strictly increasing")
+        if not self.half_width_rel > 0:
+            raise LensError(f"{src}: half_width_rel must be > 0 (got {self.half_width_rel})")
+        object.__setattr__(self, "_inverse", _ScalarPchip(f, t))
+
+    @classmethod
+    def from_meta(cls, meta: object, source: str = "lens block") -> VertexResponse:
+        """From the ``vertex_response`` table of a lens file or a recording's lens block."""
+        src = f"{source}: vertex_response"
+        if not isinstance(meta, Mapping):
+            raise LensError(f"{src} must be a table (measure, half_width_rel, true_h, fitted_h)")
+
+        def floats(key: str) -> tuple[float, ...]:
+            values = meta.get(key)
+            if not isinstance(values, Sequence) or isinstance(values, str):
+                raise LensError(f"{src}.{key} must be a list of numbers")
+            return tuple(_number(x, f"vertex_response.{key}[{i}]", source) for i, x in
+                         enumerate(values))  # fmt: skip
+
+        n_depths = meta.get("n_depths", 0)
+        return cls(
+            measure=str(meta.get("measure", "")),
+            half_width_rel=_number(
+                meta.get("half_width_rel"), "vertex_response.half_width_rel", source
+            ),
+            true_h=floats("true_h"),
+            fitted_h=floats("fitted_h"),
+            depth_spread_h=_number(meta.get("depth_spread_h", 0.0), "depth_spread_h", source),
+            n_depths=_integer(n_depths, "vertex_response.n_depths", source),
+        )
+
+    def to_meta(self) -> dict[str, Any]:
+        """The ``vertex_response`` table (round-trips through :meth:`from_meta`)."""
+        return {
+            "measure": self.measure,
+            "half_width_rel": self.half_width_rel,
+            "true_h": list(self.true_h),
+            "fitted_h": list(self.fitted_h),
+            "depth_spread_h": self.depth_spread_h,
+            "n_depths": self.n_depths,
+        }
+
+    def applies(self, half_width_mm: float, mid_mm: float) -> bool:
+        """Whether a bracket of half-width ``half_width_mm`` at ``mid_mm`` is the kind measured
+        (within RESPONSE_WIDTH_TOLERANCE of ``half_width_rel``): a wider bracket (the first,
+        full-range ones; a large σ) has another response."""
+        if not (half_width_mm > 0 and mid_mm > 0):
+            return False
+        ratio = half_width_mm / mid_mm / self.half_width_rel
+        return 1.0 / RESPONSE_WIDTH_TOLERANCE <= ratio <= RESPONSE_WIDTH_TOLERANCE
+
+    def correct(self, fitted_h: float) -> tuple[float, float]:
+        """(true offset, d true / d fitted) for a fitted offset, both in half-brackets. Beyond
+        the measured range the end segment's chord continues (a straight line)."""
+        f, t = self.fitted_h, self.true_h
+        if fitted_h < f[0]:
+            slope = (t[1] - t[0]) / (f[1] - f[0])
+            return t[0] + slope * (fitted_h - f[0]), slope
+        if fitted_h > f[-1]:
+            slope = (t[-1] - t[-2]) / (f[-1] - f[-2])
+            return t[-1] + slope * (fitted_h - f[-1]), slope
+        return self._inverse(fitted_h), self._inverse.derivative(fitted_h)
+
+
 class _ScalarPchip:
     """SciPy's ``PchipInterpolator(x, y, extrapolate=False)``, built and evaluated in Python.
 
@@ -252,6 +359,21 @@ class _ScalarPchip:
             res = res + c * z
             if k < last:
                 z *= s
+        return res
+
+    def derivative(self, xval: float) -> float:
+        """The first derivative at ``xval`` (the same intervals; NaN outside)."""
+        x = self._x
+        if not x[0] <= xval <= x[-1]:
+            return math.nan
+        i = min(bisect.bisect_right(x, xval) - 1, len(x) - 2)
+        s = xval - x[i]
+        coeffs = self._coeffs[i]
+        res = 0.0
+        z = 1.0
+        for k in range(1, len(coeffs)):
+            res = res + k * coeffs[k] * z
+            z *= s
         return res
 
 
