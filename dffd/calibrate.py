@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import logging
 import math
 import sys
@@ -71,6 +72,7 @@ import numpy.typing as npt
 
 from dffd.calibrate_check import MAX_SWEEPS, TableCheck, check_table
 from dffd.calibrate_fit import (
+    VERTEX_WINDOW_BLUR_PX,
     CalibrationError,
     DepthPoint,
     FocusOptics,
@@ -78,9 +80,10 @@ from dffd.calibrate_fit import (
     fit_table,
     fit_vertex,
 )
+from dffd.calibrate_vertex import table_response
 from dffd.config import ConfigError, DffdConfig, load_config
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
-from dffd.core.focus import DEFAULT_FOCUS_MEASURE, frame_cost
+from dffd.core.focus import DEFAULT_FOCUS_MEASURE, PlanConfig, frame_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError, VertexResponse
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.literals import FocusMeasure
@@ -147,6 +150,9 @@ class CalibrationResult:
     latency_frames: int
     points: tuple[DepthPoint, ...]  # every sweep's point, repeats included
     repeated: tuple[float, ...]  # depths swept more than once, in the order swept again
+    # how the burst fit's vertex responds to the true offset on these sweeps (written into the
+    # lens file as ``table.lens.vertex_response``; dffd.calibrate_vertex.table_response)
+    response_lines: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         """The residuals and the uncertainty per depth, the repeats (CLI and lens file)."""
@@ -158,6 +164,7 @@ class CalibrationResult:
                 "swept again (predicted beyond the leave-one-out limit by the other depths): "
                 + ", ".join(f"{z:g} m" for z in self.repeated)
             )
+        out += self.response_lines
         return out
 
 
@@ -271,7 +278,20 @@ async def calibrate_table(
     else:
         table = fit_table(name, rig, points, f_number)
         check = check_table(table, rig) if table.fit is not None else None
-    return CalibrationResult(table, check, latency, tuple(points), tuple(repeated))
+    # the burst fit's vertex against the true offset, on the same sweeps through this table
+    # (docs/estimation.md §21): the estimator inverts it to correct each burst's vertex
+    response, lines = table_response(
+        table.lens,
+        [(p.placed_m, p.sweep) for p in points],
+        measure,
+        VERTEX_WINDOW_BLUR_PX,
+        PlanConfig().default_f_number,
+    )
+    if response is not None:
+        table = dataclasses.replace(
+            table, lens=dataclasses.replace(table.lens, vertex_response=response)
+        )
+    return CalibrationResult(table, check, latency, tuple(points), tuple(repeated), tuple(lines))
 
 
 async def sharpest(

@@ -148,6 +148,7 @@ def pipeline_config(settings: DffdConfig) -> PipelineConfig:
         rho_min=est.lpv_rho_min_per_s,
         rho_max=est.lpv_rho_max_per_s,
         focus_measure=est.focus_measure,
+        vertex_response=est.vertex_response,
     )
 
 

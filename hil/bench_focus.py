@@ -1,6 +1,7 @@
 """Focus-measure validation on the simulator: fitted vertex against the true offset (issue 11.2).
 
-``python -m hil.bench_focus [--models reference,aberrated] [--depths 2.5,4,5.5] [--repeats 5]``
+``python -m hil.bench_focus [--models reference,aberrated] [--depths 2.5,4,5.5] [--repeats 5]
+[--calibration DIR]``
 
 For a static target at depth z, three-setting brackets (half-width h: 3 px of outer blur, as the
 burst planner) are centred at v + δ for δ across [−h, h]; every frame is rendered, tracked by the
@@ -13,6 +14,15 @@ offset crosses zero (linear interpolation between the two δ around the crossing
 vertex lands on its own bracket centre is re-planned there, so a static target's estimate sits
 −δ* h from the true sharp setting in v (docs/estimation.md §13): a lean that only a calibration
 using this same three-point fit can absorb.
+
+With ``--calibration DIR`` each optics model's lens is calibrated as the bench does
+(:func:`hil.calibration.calibrated_lens`, paper-circle's camera, seed 1, cached in DIR) and the
+measure it was calibrated with is also reported *corrected* by the table's vertex response
+(``<measure>+response``: :func:`dffd.core.focus.fit_burst` with ``response``, docs/estimation.md
+§21). Its offsets are from the calibration's fixed point, which the table maps to the true
+depth: its intercept is the lean the table absorbs, its slope should be 1 across the bracket.
+``local_slope`` is the slope over the offsets within ± 0.3 h (where the closed loop's bursts
+are), ``slope`` over all of them; ``noise_centre_h`` the vertex noise within ± CENTRE_H.
 """
 
 from __future__ import annotations
@@ -22,13 +32,14 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 
 import dffd.core.contour as contour_mod
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import fit_burst, frame_cost
-from dffd.core.lens import Lens
+from dffd.core.lens import Lens, VertexResponse
 from drivers.sim.config import load_sim_camera_config, with_overrides
 from drivers.sim.resources import reference_camera_file
 from drivers.sim.source import SimFrameSource, camera_state_for
@@ -37,6 +48,9 @@ from drivers.sim.source import SimFrameSource, camera_state_for
 # gradient against (focus.DEBIAS_WINDOW_SIGMAS); the debiased peak settles where that moment does
 MEASURES = ("peak_gradient", "edge_variance", "debiased_peak")
 EXTRA: dict[str, object] = {}
+# Offsets (h) where a closed loop's bursts are: the vertex noise there is reported apart
+# (noise_centre_h), since a response's inverse slope is < 1 there and > 1 near the ends.
+CENTRE_H = 0.15
 
 
 class _Clock:
@@ -100,10 +114,13 @@ def measure(
     *,
     deltas: Sequence[float],
     repeats: int,
+    response: VertexResponse | None = None,
 ) -> dict[str, dict[str, float]]:
-    """Slope and noise of the vertex for each measure."""
+    """Slope and noise of the vertex for each measure (and ``<measure>+response`` corrected by
+    ``response`` for its measure)."""
     tracker = ContourTracker(TrackerConfig())
-    offsets: dict[str, list[tuple[float, float, int]]] = {m: [] for m in MEASURES}
+    names = [*MEASURES, *([f"{response.measure}+response"] if response is not None else [])]
+    offsets: dict[str, list[tuple[float, float, int]]] = {m: [] for m in names}
     for rep in range(repeats):
         for delta in deltas:
             v_c = v_true - delta * h  # true offset of the vertex from the bracket centre: +δ h
@@ -122,35 +139,63 @@ def measure(
                 if any(math.isnan(c[0]) for c in costs[m]):
                     offsets[m].append((delta, math.nan, rep))  # counted as rejected
                     continue
-                fit = fit_burst(
-                    [v_c - h, v_c, v_c + h],
-                    [c[0] for c in costs[m]],
-                    [c[1] for c in costs[m]],
-                    lens,
-                )
-                offsets[m].append(
-                    (delta, (fit.v_hat_mm - v_c) / h if fit.accepted else math.nan, rep)
-                )
+                corrected = [None] if response is None or m != response.measure else [
+                    None, response]  # fmt: skip
+                for r in corrected:
+                    fit = fit_burst(
+                        [v_c - h, v_c, v_c + h],
+                        [c[0] for c in costs[m]],
+                        [c[1] for c in costs[m]],
+                        lens,
+                        response=r,
+                    )
+                    name = m if r is None else f"{m}+response"
+                    offsets[name].append(
+                        (delta, (fit.v_hat_mm - v_c) / h if fit.accepted else math.nan, rep)
+                    )
     out = {}
-    for m in MEASURES:
+    for m in names:
         arr = np.array(offsets[m])
         bad = int(np.sum(~np.isfinite(arr[:, 1])))
         arr = arr[np.isfinite(arr[:, 1])]
         slope, icpt = np.polyfit(arr[:, 0], arr[:, 1], 1)
-        noise = []
+        near = np.abs(arr[:, 0]) <= 0.3 + 1e-9
+        local = (
+            float(np.polyfit(arr[near, 0], arr[near, 1], 1)[0])
+            if len(np.unique(arr[near, 0])) > 1
+            else math.nan
+        )
+        noise, centre = [], []
         for delta in deltas:
             sel = arr[arr[:, 0] == delta, 1]
             if len(sel) > 1:
                 noise.append(np.var(sel, ddof=1))
+                if abs(delta) <= CENTRE_H:
+                    centre.append(noise[-1])
         out[m] = {
             "fixed_point_h": fixed_point(arr[:, 0], arr[:, 1]),
             "slope": float(slope),
+            "local_slope": local,
             "intercept_h": float(icpt),
             "noise_h": float(math.sqrt(np.mean(noise))) if noise else math.nan,
+            "noise_centre_h": float(math.sqrt(np.mean(centre))) if centre else math.nan,
             "max_dev_h": float(np.max(np.abs(arr[:, 1] - arr[:, 0]))),
             "rejected": bad,
         }
     return out
+
+
+def calibrated_response(model: str, cache_dir: Path) -> VertexResponse | None:
+    """The vertex response of the table the bench calibrates for this optics model (the
+    paper-circle scenario's camera, seed 1; cached in ``cache_dir``)."""
+    from hil.calibration import calibrated_lens
+    from hil.scenario import OPTICS_MODELS, load_scenario
+
+    if model not in OPTICS_MODELS:
+        raise SystemExit(f"unknown optics model {model!r}: one of {', '.join(OPTICS_MODELS)}")
+    scenario = load_scenario("paper-circle").with_optics(model)  # type: ignore[arg-type]
+    calibration = calibrated_lens(scenario, 1, cache_dir)
+    return Lens.from_toml(calibration.lens_path).vertex_response
 
 
 def fixed_point(delta: np.ndarray, x_hat: np.ndarray) -> float:
@@ -181,6 +226,18 @@ def main() -> None:
     )
     parser.add_argument("--repeats", type=int, default=4)
     parser.add_argument("--deltas", default="-0.9,-0.6,-0.3,0,0.3,0.6,0.9")
+    parser.add_argument(
+        "--calibration",
+        default=None,
+        help="directory of the bench's calibrated tables (made if missing): report the "
+        "calibrated measure corrected by its vertex response too",
+    )
+    parser.add_argument(
+        "--lens",
+        action="append",
+        default=[],
+        help="MODEL=FILE: take that optics model's vertex response from a lens file instead",
+    )
     args = parser.parse_args()
     deltas = [float(d) for d in args.deltas.split(",")]
     if args.k is not None:
@@ -193,14 +250,25 @@ def main() -> None:
     EXTRA.update(extra)
     results = {}
     for model in args.models.split(","):
+        files = dict(item.split("=", 1) for item in args.lens)
+        response = (
+            Lens.from_toml(files[model]).vertex_response
+            if model in files
+            else None
+            if args.calibration is None
+            else calibrated_response(model, Path(args.calibration))
+        )
         for z in (float(x) for x in args.depths.split(",")):
             t0 = time.perf_counter()
             render, v_true, h, lens = sim_renderer(model, z, args.shape, 0)
-            r = measure(render, v_true, h, lens, deltas=deltas, repeats=args.repeats)
+            r = measure(
+                render, v_true, h, lens, deltas=deltas, repeats=args.repeats, response=response
+            )
             results[f"{model} z={z}"] = r
             for m, v in r.items():
                 print(
-                    f"{model:9s} z={z:4.1f} {m:14s} slope {v['slope']:.3f} "
+                    f"{model:9s} z={z:4.1f} {m:24s} slope {v['slope']:.3f} "
+                    f"local {v['local_slope']:.3f} centre noise {v['noise_centre_h']:.4f} h "
                     f"icpt {v['intercept_h']:+.3f} h  noise {v['noise_h']:.4f} h  "
                     f"maxdev {v['max_dev_h']:.3f} h  fixed point {v['fixed_point_h']:+.3f} h  "
                     f"rejected {v['rejected']}",

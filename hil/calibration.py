@@ -34,7 +34,7 @@ from dffd.calibrate import (
 )
 from dffd.calibrate_check import REPEAT_SIGMA, TableCheck
 from dffd.calibrate_fit import VERTEX_WINDOW_BLUR_PX
-from dffd.core.lens import Lens
+from dffd.core.lens import Lens, VertexResponse
 from dffd.literals import FocusMeasure
 from hil.scenario import Scenario
 from hil.simbuild import sim_camera_config, truth_lens_table
@@ -42,7 +42,8 @@ from hil.simbuild import sim_camera_config, truth_lens_table
 logger = logging.getLogger(__name__)
 
 # Bump when the procedure changes what it writes: cached tables of another version are refitted.
-PROCEDURE_VERSION = 9  # 8: the closed loop's bracket ends; 9: the axis switch (estimation §16)
+# 8: the closed loop's bracket ends; 9: the axis switch (estimation §16); 10: the vertex response
+PROCEDURE_VERSION = 10
 # Depths (m) at which the calibrated table is scored against the true focus curve.
 SCORE_DEPTHS_M = tuple(float(z) for z in np.geomspace(1.5, 12.0, 25))
 
@@ -111,6 +112,7 @@ def calibrated_lens(
             "vertex_rules": {f"{p.z_m:g}": p.rule for p in table.points},
         },
         "check": None if check is None else _check_report(check),
+        "vertex_response": _response_report(table.lens.vertex_response),
         "repeated_depths_m": list(result.repeated),
         "sweeps": len(result.points),
         "table": str(toml_path),
@@ -172,6 +174,27 @@ def calibration_error(
             {"z_m": z, "depth_err_m": float(x), "v_err_um": float(y), "sigma_v_um": float(q)}
             for z, x, y, q in zip(SCORE_DEPTHS_M, e, d, s, strict=True)
         ],
+    }
+
+
+def _response_report(response: VertexResponse | None) -> dict[str, Any] | None:
+    """The vertex response the table carries (docs/estimation.md §21): its slopes near the
+    centre and across the bracket, the spread between the sweeps."""
+    if response is None:
+        return None
+    t, f = np.asarray(response.true_h), np.asarray(response.fitted_h)
+
+    def slope(reach: float) -> float:
+        sel = np.abs(t) <= reach + 1e-9
+        return round(float(np.polyfit(t[sel], f[sel], 1)[0]), 4)
+
+    return {
+        "measure": response.measure,
+        "sweeps": response.n_depths,
+        "offsets_h": [t[0], t[-1]],
+        "slope_within_0.3h": slope(0.3),
+        "slope_within_0.9h": slope(0.9),
+        "spread_between_sweeps_h": response.depth_spread_h,
     }
 
 

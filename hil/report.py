@@ -618,7 +618,9 @@ def accuracy_table(reports: Sequence[dict[str, Any]]) -> str:
     """One row per report: the best estimator's steady-state RMS and raw z_m's steady-state std
     (mean ± sd over the seeds, mm), their ratio, the best estimator's 2σ coverage and NEES (all
     seeds pooled), the estimate rate over the frame rate and the focus measure's closed-loop
-    slope — issue 11's table (``python -m hil table --accuracy``)."""
+    slope ± its standard error, with the sd of the true offsets it rests on (h: a slope over
+    offsets that barely spread is poorly determined) — issue 11's table (``python -m hil table
+    --accuracy``)."""
     head = (
         "| scenario | optics | seeds | best ss RMS (mm) | raw z_m ss std (mm) | ratio | "
         "2σ coverage | NEES | estimate rate | focus slope |"
@@ -638,7 +640,12 @@ def accuracy_table(reports: Sequence[dict[str, Any]]) -> str:
         ratio = best_m / raw_m if best_m is not None and raw_m else None
         best = r["estimators"].get(r["best"]) or {}
         slope = r.get("focus_slope")
-        slope_s = "–" if not slope else f"{slope['slope']:.2f} ± {slope['slope_se']:.2f}"
+        slope_s = (
+            "–"
+            if not slope
+            else f"{slope['slope']:.2f} ± {slope['slope_se']:.2f} "
+            f"(sd {slope['true_offset_sd_h']:.2f} h)"
+        )
         rows.append(
             f"| {r['scenario']} | {r.get('optics', '–')} | {seeds.get('n', 1)} | "
             f"{pm('best_ss_rms_m')} | {pm('measured_ss_std_m')} | {_num(ratio, '{:.2f}')} | "

@@ -80,3 +80,20 @@ def test_a_sweep_that_does_not_reach_the_bracket_gives_none() -> None:
     """No extrapolation: the caller falls back to the least-squares vertex."""
     x, g, s = _sweep(0.0, 1, lo=-0.6, hi=2.0)
     assert closed_loop_vertex(x, g, s, H, start=0.0) is None
+
+
+def test_the_response_is_the_three_point_vertex_around_the_fixed_point() -> None:
+    """``offsets_h``: on the same smoothed sweep, the vertex the estimator fits with its bracket
+    δ h off the fixed point — 0 at δ = 0, the noiseless curve's three-point vertex elsewhere
+    (here S-shaped: the skewed cost is not a parabola); NaN where the bracket leaves the sweep."""
+    x, g, s = _sweep(0.6, 1)
+    offsets = (-0.9, -0.5, 0.0, 0.5, 1.5)
+    found = closed_loop_vertex(x, g, s, H, start=0.0, offsets_h=offsets)
+    assert found is not None
+    assert len(found.response_h) == len(offsets)
+    assert found.response_h[2] == pytest.approx(0.0, abs=1e-6)
+    for d, r in zip(offsets[:-1], found.response_h[:-1], strict=True):
+        c = found.x - d * H
+        assert r == pytest.approx((_three_point_vertex(c, 0.6) - c) / H, abs=0.02)
+    assert np.isnan(found.response_h[-1])  # the bracket ± h around x − 1.5 h leaves ± 2 h
+    assert closed_loop_vertex(x, g, s, H, start=0.0).response_h == ()  # type: ignore[union-attr]

@@ -282,6 +282,12 @@ class EstimatorsSection(_Section):
         "(any PSF, noisier; docs/estimation.md §8) or debiased_peak (the peak gradient less its "
         "bias fitted online against the edge moment, §12)",
     )
+    vertex_response: bool = Field(
+        default=True,
+        description="correct each burst's vertex by the lens file's vertex response (measured "
+        "by dffd calibrate for the same focus measure; a lens file without one: no correction; "
+        "docs/estimation.md §21)",
+    )
 
     @model_validator(mode="after")
     def _rho_range_ordered(self) -> EstimatorsSection:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 from dffd.core.combine import PeakBias, combine_vertices
 from dffd.core.contour import BoundaryObservation
 from dffd.core.focus import BurstFit, FitConfig, fit_burst, frame_cost
-from dffd.core.lens import Lens
+from dffd.core.lens import Lens, VertexResponse
 from dffd.core.outputs import Measurement
 from dffd.literals import FocusMeasure
 
@@ -93,11 +93,24 @@ class BurstAssembler:
         trim_fraction: float,
         burst_size: int,
         rolling_max_span_s: float,
+        vertex_response: bool = True,
     ) -> None:
         self.settings = settings
         self.lens = settings.lens
         self.fit = fit
         self.focus_measure: FocusMeasure = focus_measure
+        # The calibration's vertex response corrects the vertex of bursts fitted with the
+        # measure it was measured with (docs/estimation.md §21); "debiased_peak" combines two
+        # measures' vertices and is not corrected.
+        response = self.lens.vertex_response
+        self.response: VertexResponse | None = (
+            response
+            if vertex_response
+            and response is not None
+            and response.measure == focus_measure
+            and focus_measure != "debiased_peak"
+            else None
+        )
         self.trim_fraction = trim_fraction
         self.burst_size = burst_size
         self.rolling_max_span_s = rolling_max_span_s
@@ -197,7 +210,9 @@ class BurstAssembler:
         g = [s.g for s in samples]
         sg = [s.sigma_g for s in samples]
         log_ratio = log_size_ratios([s.t for s in samples], t_mid)
-        fit = self._fit(v, g, sg, log_ratio, z_fallback)
+        # a burst that fell back to cost (2) is not in the response's measure
+        response = None if fell_back else self.response
+        fit = self._fit(v, g, sg, log_ratio, z_fallback, response=response)
         if self.focus_measure == "debiased_peak":
             fit = self._combine(fit, v, samples, log_ratio, z_fallback, fallback=fell_back)
         if not fit.accepted:
@@ -226,9 +241,12 @@ class BurstAssembler:
         sg: list[float],
         log_ratio: list[float] | None,
         z_fallback: float | None,
+        *,
+        response: VertexResponse | None = None,
     ) -> BurstFit:
-        """The parabola fit, each setting shifted by the target's motion during the burst."""
-        fit = fit_burst(v, g, sg, self.lens, self.fit)
+        """The parabola fit, each setting shifted by the target's motion during the burst (its
+        vertex corrected by ``response``, :func:`dffd.core.focus.fit_burst`)."""
+        fit = fit_burst(v, g, sg, self.lens, self.fit, response=response)
         if log_ratio is None:
             return fit
         z_ref = fit.z_m if fit.accepted else z_fallback
@@ -241,7 +259,7 @@ class BurstAssembler:
                 vi - (self.lens.v_from_depth(z_ref * math.exp(-lr)) - v_ref)
                 for vi, lr in zip(v, log_ratio, strict=True)
             ]
-            fit = fit_burst(v_comp, g, sg, self.lens, self.fit)
+            fit = fit_burst(v_comp, g, sg, self.lens, self.fit, response=response)
             z_ref = fit.z_m if fit.accepted else None
         return fit
 

@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from dffd.core import kernel_dispatch
-from dffd.core.lens import Lens
+from dffd.core.lens import Lens, VertexResponse
 from dffd.literals import FocusMeasure
 
 REASON_OK = "ok"
@@ -166,8 +166,16 @@ def fit_burst(
     sigma_g: Sequence[float],
     lens: Lens,
     config: FitConfig | None = None,
+    *,
+    response: VertexResponse | None = None,
 ) -> BurstFit:
-    """Fit the cost parabola to a burst; closed form for three settings, WLS for more."""
+    """Fit the cost parabola to a burst; closed form for three settings, WLS for more.
+
+    ``response``: the calibration's measured vertex response (``Lens.vertex_response``, for
+    the measure of ``g``); where it applies to the bracket the fitted offset from the bracket's
+    centre is mapped to the true one and its σ scaled by the inverse response's slope
+    (docs/estimation.md §21). None: the parabola's vertex as fitted.
+    """
     cfg = config if config is not None else FitConfig()
     # A burst has three settings: the parabola through them in closed form on plain floats
     # (NumPy's per-call overhead — lstsq, inv, unique: ~50 µs a fit, three fits a burst —
@@ -185,6 +193,9 @@ def fit_burst(
     xv = -a1 / (2 * a2)
     g0, g1 = a1 / (2 * a2 * a2), -1 / (2 * a2)  # ∂xv/∂(a2, a1)
     sigma_x = math.sqrt(max(g0 * g0 * c00 + 2.0 * g0 * g1 * c01 + g1 * g1 * c11, 0.0))
+    if response is not None and response.applies(h, mid):
+        xv, gain = response.correct(xv)
+        sigma_x *= gain
     v_hat = mid + h * xv
     sigma_v = h * sigma_x
     c_min = a0 - a1 * a1 / (4 * a2)

@@ -170,6 +170,9 @@ class PipelineConfig:
     # Focus measure of a burst frame (dffd.core.focus.frame_cost): "peak_gradient" is the
     # paper's cost (2); "edge_variance" holds for any PSF but is noisier (docs/estimation.md §8).
     focus_measure: FocusMeasure
+    # Correct each burst's vertex by the lens file's measured vertex response (when it has one
+    # for this measure; docs/estimation.md §21).
+    vertex_response: bool
 
 
 class Pipeline:
@@ -192,6 +195,7 @@ class Pipeline:
             trim_fraction=tcfg.trim_fraction,
             burst_size=config.burst_size,
             rolling_max_span_s=config.rolling_max_span_s,
+            vertex_response=config.vertex_response,
         )
         self._bank = EstimatorBank(config, lens)
         self.cf2_gains = self._bank.cf2_gains
