@@ -151,12 +151,13 @@ def closed_loop_vertex(
     pinned = abs(vertex - centre) > 1e3 * FIXED_POINT_TOLERANCE_H * h
     response: tuple[float, ...] = ()
     if offsets_h and not pinned:
-        # the least smoothing: the middle setting of a bracket near the fixed point sits where
-        # the cost bends most, and a wider local quadratic flattens it there (reference optics,
-        # pooled slope within ± 0.3 h 1.079 with 5 settings, 1.060 with 9; the bench's renders
-        # 1.07-1.10); the pooling over the depths averages the extra noise
-        k_resp = SMOOTH_HALF_POINTS[0]
-        response = tuple(_three_point(xk, gk, sk, k_resp, c=vertex - d * h, h=h) for d in offsets_h)
+        # on the smoothing that found the fixed point, so that the response is 0 at δ = 0 and
+        # the correction leaves the closed loop's fixed point (the table's) where it is. The
+        # least smoothing (5 settings) flattens the bend at the sharp setting less (reference
+        # optics, pooled slope within ± 0.3 h 1.079 against 1.071) but reads +0.001 h at δ = 0:
+        # a shift of every vertex by 0.09 µm of v, +2.5 mm of bias on the reference circle
+        # (ss bias 1.2 -> 3.7 mm, LPV ss RMS 7.4 -> 9.9 mm: a shift in v is a bias ∝ z²)
+        response = tuple(_three_point(xk, gk, sk, k, c=vertex - d * h, h=h) for d in offsets_h)
     return LoopReading(vertex, sigma, centre, pinned, k, scale, int((~keep).sum()), response)
 
 
