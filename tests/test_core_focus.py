@@ -391,5 +391,5 @@ def test_the_burst_assembler_corrects_with_the_lens_files_response(
     assert (bursts.response is response) is applied
     assert BurstAssembler(
         FocusSettings(LENS), fit=FitConfig(), focus_measure="peak_gradient", trim_fraction=0.1,
-        burst_size=3, rolling_max_span_s=1.0,
+        burst_size=3, rolling_max_span_s=1.0, vertex_response=True,
     ).response is None  # a lens file without a response  # fmt: skip

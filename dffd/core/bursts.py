@@ -93,7 +93,7 @@ class BurstAssembler:
         trim_fraction: float,
         burst_size: int,
         rolling_max_span_s: float,
-        vertex_response: bool = True,
+        vertex_response: bool,
     ) -> None:
         self.settings = settings
         self.lens = settings.lens
