@@ -139,6 +139,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="python -m dffd.warmup", description=(__doc__ or "").split("\n\n", 1)[1]
     )
     parser.parse_args(argv)
+    from dffd.cli.loading import kernels_warm
+
+    if not kernels_warm():
+        # a first compilation takes a minute or more with nothing else to show for it
+        print(
+            "dffd warmup: compiling the tracker's kernels into the numba cache, once after an "
+            "install (15-40 s of CPU; a minute or two on a busy 2-core machine)...",
+            flush=True,
+        )
     t0 = time.perf_counter()
     from dffd.core import kernels  # the import is what compiles (or loads) the kernels
 

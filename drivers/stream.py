@@ -145,10 +145,10 @@ class StreamFrameSource(ThreadedFrameSource):
 
     def _open_error(self) -> str:
         return (
-            f"cannot open video stream {redact(self.settings.url)!r} within "
-            f"{self.settings.open_timeout_s:g} s: check the URL (path and credentials are in "
-            "the camera's manual), that the camera is reachable (ping, its web page) and that "
-            "its stream is enabled; try it with `ffplay URL`"
+            f"cannot open video stream {redact(self.settings.url)!r} (refused, not found, or "
+            f"no answer within {self.settings.open_timeout_s:g} s): check the URL (path and "
+            "credentials are in the camera's manual), that the camera is reachable (ping, its "
+            "web page) and that its stream is enabled; try it with `ffplay URL`"
         )
 
     def _open(self) -> VideoCaptureLike | None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -358,6 +360,26 @@ def test_check_config_finds_what_stops_run_with_the_same_code(
     assert expected in capsys.readouterr().err
     assert cli.main(["run", "--config", str(path), "--no-console"]) == 2  # refused alike
     assert expected in capsys.readouterr().err
+
+
+# A fresh interpreter's imports of the config (pydantic) take well under this; the daemon's take
+# seconds on a busy machine.
+RUN_REFUSAL_TIMEOUT_S = 60.0
+
+
+def test_run_refuses_a_bad_config_before_it_loads_the_daemon(tmp_path: Path) -> None:
+    path = write(tmp_path, "[scheduler]\nburst_every_n_frame = 2\n")
+    probe = (
+        "import sys; from dffd import cli; "
+        f"rc = cli.main(['run', '--config', {str(path)!r}, '--no-console']); "
+        "print(rc, 'dffd.daemon.app' in sys.modules, 'numba' in sys.modules, 'cv2' in sys.modules)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe],
+        capture_output=True, text=True, timeout=RUN_REFUSAL_TIMEOUT_S, check=False,
+    )  # fmt: skip
+    assert done.stdout.split() == ["2", "False", "False", "False"], done.stderr
+    assert "did you mean 'burst_every_n_frames'?" in done.stderr
 
 
 def test_scenario_is_a_packaged_world_or_a_path_next_to_the_file(tmp_path: Path) -> None:

@@ -34,3 +34,18 @@ def test_warmup_reports_the_cache(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     assert f"{_n_kernels()} kernels ready" in out
     assert kernels.cache_report().cache_dirs[0] in out
+
+
+def test_warmup_says_it_compiles_before_a_cold_start(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a first `make setup` compiles for a minute or more: the user is told before it starts
+    from dffd.cli import loading
+
+    monkeypatch.setattr(loading, "kernels_warm", lambda: False)
+    assert warmup.main([]) == warmup.EXIT_OK
+    first, *_ = capsys.readouterr().out.splitlines()
+    assert "compiling the tracker's kernels" in first
+    monkeypatch.setattr(loading, "kernels_warm", lambda: True)
+    assert warmup.main([]) == warmup.EXIT_OK
+    assert "compiling" not in capsys.readouterr().out

@@ -279,6 +279,21 @@ def test_overlay_draws_contour_centroid_and_bracket() -> None:
     assert changed[16:224, 294:305].sum() > 100  # the focus bracket bar on the right
 
 
+def test_overlay_caption_sits_on_a_solid_box() -> None:
+    # a thick black copy of the label under the thin one drifted off it (Hershey glyphs advance
+    # by their stroke): the caption's background is one dark box, nothing of it beyond
+    image = np.full((240, 320), 128, np.uint8)
+    overlay = Overlay(state="tracking", z_m=9.752, sigma_m=0.013)
+    out = annotate(FrameView(1, 0.0, image, overlay))
+    band = np.any(out[:, :, :] != 128, axis=2)[:28]
+    cols = np.flatnonzero(band.any(axis=0))
+    rows = np.flatnonzero(band.any(axis=1))
+    box = out[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    assert np.all(band[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1])  # no gray in the box
+    assert box.mean() < 60  # dark, with light text on it
+    assert box.max() > 200
+
+
 async def _read_frames(ws: aiohttp.ClientWebSocketResponse, n: int) -> list[np.ndarray]:
     frames = []
     async with asyncio.timeout(STREAM_TIMEOUT_S):

@@ -107,6 +107,13 @@ async def test_dashboard_video_plot_and_roi_drag(
         "state tracking", lambda: browser.find_element(By.ID, "state").text == "TRACKING"
     )
 
+    # An empty rejection list reads "none", not a numbered "1. none".
+    empty = browser.execute_script(
+        "showRejections([]); const li = document.querySelector('#rejections li');"
+        "return [li.textContent, getComputedStyle(li).listStyleType];"
+    )
+    assert empty == ["none", "none"]
+
     # The 3D track: acceleration, angular speed, position σ and the model probabilities render.
     def text(element_id: str) -> str:
         return str(browser.find_element(By.ID, element_id).text)

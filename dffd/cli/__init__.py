@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import cast
 
 from dffd import __version__
-from dffd.exitcodes import EXIT_CODES_HELP, EXIT_INTERRUPTED
+from dffd.exitcodes import EXIT_CODES_HELP, EXIT_INTERRUPTED, EXIT_USAGE
 
 __all__ = ["NEEDS_CORE", "SUBCOMMANDS", "Subcommand", "build_parser", "entry_point", "main"]
 
@@ -97,6 +97,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     warm = None
+    if args.command == "run":
+        from dffd.config import check_run_config
+
+        # before the daemon's imports and the kernels' warm-up (a second or more on a busy
+        # machine): a typo is reported at once, and nothing starts for a config that cannot run
+        checked = check_run_config(args.config)
+        if isinstance(checked, str):
+            print(checked, file=sys.stderr)
+            return EXIT_USAGE
+        args.checked_config = checked
     if args.command in NEEDS_CORE:
         from dffd.cli.loading import say_if_compiling
 

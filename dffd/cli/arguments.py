@@ -124,17 +124,18 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--latency", action="store_true",
         help="measure the video latency of --config's camera and video ([capture] latency_s) "
-        "by focus steps, instead of the focus table",
+        "by small pan steps (2° each; the first frame that shows a step), instead of the focus "
+        "table",
     )  # fmt: skip
     parser.add_argument(
         "--trials", type=int, default=None, metavar="N",
-        help="focus steps for --latency (default: dffd.latency.DEFAULT_TRIALS, 15)",
+        help="pan steps for --latency, their median is the latency (default: 15)",
     )  # fmt: skip
     parser.description = (
         "Fit the focus counts <-> v table from focus sweeps with the target at known depths and "
         "measure the capture latency. --sim: the simulated camera. --config FILE: the real "
         "camera (serial port + video device of FILE); you are prompted to place the target at "
-        "each depth. Same procedure either way; see the module docstring."
+        "each depth. Same procedure either way (docs/calibration.md)."
     )
     parser.epilog = "Exit codes: 0 written, 1 calibration failed, 2 usage/config error."
 

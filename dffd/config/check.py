@@ -19,12 +19,25 @@ from dffd.config.loading import load_config
 from dffd.config.models import DffdConfig
 from dffd.exitcodes import EXIT_OK, EXIT_USAGE
 
-__all__ = ["problems", "run"]
+__all__ = ["check_run_config", "problems", "run"]
 
 # camera.port URL forms that name a local serial device (others are network transports).
 _SERIAL_SCHEME = "serial://"
 # A V4L2 device given by index N is /dev/videoN.
 _VIDEO_DEVICE = "/dev/video{}"
+
+
+def check_run_config(path: Path | None) -> DffdConfig | str:
+    """The config ``dffd run`` starts with, or the message (``dffd run: …``) that refuses it:
+    a validation error or :func:`problems`, the devices included."""
+    try:
+        config = load_config(path)
+    except ConfigError as exc:
+        return f"dffd run: {exc}"
+    missing = problems(config, devices=True)
+    if missing:
+        return "dffd run: " + "; ".join(missing)
+    return config
 
 
 def problems(config: DffdConfig, *, devices: bool) -> list[str]:

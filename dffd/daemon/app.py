@@ -64,7 +64,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from dffd.config import ConfigError, DffdConfig, load_config, problems
+from dffd.config import DffdConfig, check_run_config
 from dffd.core.lens import Lens, LensError
 from dffd.daemon import allocator
 from dffd.daemon.actuators import Actuators
@@ -134,15 +134,13 @@ RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
 def run(args: argparse.Namespace) -> int:
     """Run until SIGTERM/SIGINT (or ``--duration``); return the exit code."""
     allocator.configure()  # before the daemon's threads allocate (see dffd.daemon.allocator)
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        print(f"dffd run: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    missing = problems(config, devices=True)
-    if missing:
-        print("dffd run: " + "; ".join(missing), file=sys.stderr)
-        return EXIT_USAGE
+    config = getattr(args, "checked_config", None)  # dffd.cli checked it before these imports
+    if config is None:
+        checked = check_run_config(args.config)
+        if isinstance(checked, str):
+            print(checked, file=sys.stderr)
+            return EXIT_USAGE
+        config = checked
     logging.getLogger("dffd").setLevel(config.log.level)
     live = not args.no_console and sys.stdout.isatty()
     if not live and not logging.getLogger().isEnabledFor(logging.INFO):

@@ -107,7 +107,10 @@ def _draw(img: npt.NDArray[np.uint8], ov: Overlay, scale: float) -> None:
         label += f"  z {ov.z_m:.3f} m"
         if ov.sigma_m is not None:
             label += f" ± {ov.sigma_m:.3f}".replace("±", "+/-")
-    cv2.putText(img, label, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 3, cv2.LINE_AA)
+    # on a dark box, not over a thicker black copy: Hershey glyphs advance by their stroke's
+    # thickness, so a thick outline drifts off the thin text as the label goes on
+    (tw, th), base = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.55, 1)
+    cv2.rectangle(img, (4, 20 - th - 4), (12 + tw, 20 + base + 2), (0, 0, 0), -1)
     cv2.putText(img, label, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, _TEXT, 1, cv2.LINE_AA)
 
 

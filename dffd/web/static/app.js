@@ -267,7 +267,7 @@ function showRejections(items) {
     li.textContent = `${when} burst ${item.burst} [${item.focus_counts.join(", ")}]: ${item.reason}`;
     list.appendChild(li);
   }
-  if (!items.length) list.innerHTML = "<li>none</li>";
+  if (!items.length) list.innerHTML = '<li class="empty">none</li>';
 }
 
 // -- plots --------------------------------------------------------------------------------------
