@@ -22,6 +22,7 @@ from drivers.visca.errors import (
     ViscaTimeoutError,
 )
 from drivers.visca.link import ViscaLink
+from drivers.visca.session_types import LinkTimeouts
 from tests.visca_support import FAST, WAIT_S, ScriptedCamera, reinit_event, sim_camera
 
 FOCUS = codec.encode_request(codec.FocusDirect(0x2000), 1)
@@ -383,3 +384,23 @@ async def test_loop_url_echo_is_not_taken_for_a_reply() -> None:
         with pytest.raises(ViscaTimeoutError):
             await link.inquire(1, codec.PowerInquiry())
         assert link.health().stray_replies == 1  # our own request, echoed
+
+
+async def test_the_simulated_cameras_link_waits_out_a_late_simulator() -> None:
+    # The daemon's simulator answers from a thread of the same process: on a loaded machine its
+    # replies come late. The link the daemon opens to it waits them out; the hardware's would not.
+    from dffd.config import load_config
+    from dffd.daemon.startup import link_timeouts
+
+    sim_waits = link_timeouts(load_config(None))  # the embedded default: the simulated camera
+    assert sim_waits is not None
+    late = "seed=1,delay=1.0:0.5"  # every reply held 0.5 s
+    async with sim_camera(timeouts=sim_waits, retries=0) as (server, link, camera):
+        server.faults.spec = FaultSpec.parse(late)
+        await camera.focus_direct(0x3000)
+        assert await camera.focus_position() == 0x3000
+        assert sum(link.health().timeouts.values()) == 0
+    async with sim_camera(timeouts=LinkTimeouts(), retries=0) as (server, link, camera):
+        server.faults.spec = FaultSpec.parse(late)
+        with pytest.raises(ViscaTimeoutError):
+            await camera.focus_position()

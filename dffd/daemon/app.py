@@ -79,6 +79,7 @@ from dffd.daemon.startup import (
     CAMERA_INIT_TIMEOUT_S,
     DaemonError,
     initialize_camera,
+    link_timeouts,
     open_source,
     start_broker,
     start_camera_transport,
@@ -367,7 +368,7 @@ class Daemon:
         cfg = self.config
         assert self.publisher is not None
         publisher = self.publisher
-        link = ViscaLink(port, cfg.camera.baudrate)
+        link = ViscaLink(port, cfg.camera.baudrate, timeouts=link_timeouts(cfg))
         self._parts.link = link
         async with asyncio.TaskGroup() as group:
             pub_task = group.create_task(publisher.run(), name="mqtt")

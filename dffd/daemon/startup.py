@@ -33,11 +33,18 @@ from drivers.frames import FrameSource, FrameSourceError
 from drivers.stream import StreamFrameSource
 from drivers.visca.camera import Camera, profile_for
 from drivers.visca.errors import ViscaError
+from drivers.visca.session_types import LinkTimeouts
 
 _LOGGER = logging.getLogger(__name__)
 
 # Camera initialisation: Address Set, IF_Clear, power (the D100 takes ~10 s from standby), zoom.
 CAMERA_INIT_TIMEOUT_S = 30.0
+# The link's waits for the simulated camera. The hardware's 0.3 s (drivers.visca.session_types)
+# are ~3x a busy camera's answer, but the simulator answers from a thread of this process: with
+# a browser rendering the dashboard on the same 2-core machine its replies came > 0.3 s late
+# (a new user's trial: 7 ACK timeouts, a port reset and the target lost 5 times in 6 s). A reply
+# the service's own loop is late to read is not lost (asyncio runs I/O callbacks before timers).
+SIM_LINK_TIMEOUTS = LinkTimeouts(ack_s=1.0, inquiry_s=1.0, cancel_s=1.0)
 
 
 class DaemonError(RuntimeError):
@@ -57,6 +64,11 @@ async def start_broker(config: DffdConfig, stack: contextlib.AsyncExitStack) -> 
     except BrokerStartError as exc:
         raise DaemonError(str(exc)) from exc
     return broker
+
+
+def link_timeouts(config: DffdConfig) -> LinkTimeouts | None:
+    """The VISCA link's waits for ``config``'s camera (None: the driver's, for hardware)."""
+    return SIM_LINK_TIMEOUTS if config.camera.driver == "sim" else None
 
 
 async def start_camera_transport(
