@@ -89,13 +89,13 @@ class NoiseAdaptConfig:
     # ι's lower bound: two-sided since docs/estimation.md §17 (errors that alternate in sign
     # average out faster than the MA(1) model says: static targets on the reference optics, lags
     # 2-5 correlated −0.1 … −0.4); bounded as λ is (σ no smaller than ½ of the model's). The
-    # estimate is bias-corrected for its own noise (SlowErrors), without which a two-sided ι
-    # made the σ overconfident on white bursts (NEES 1.24).
+    # estimate is corrected for its bias (SlowErrors), without which a two-sided ι
+    # made the σ overconfident on white bursts (NEES 1.24; docs/estimation.md §17, §23).
     slow_error_min: float = 0.25
     # ι acts from this many bursts on (33 before docs/estimation.md §19), its lags a third of
     # the bursts seen (at most slow_error_lags): 12 bursts give 3 lags, which see the shared
-    # frame's lag-1 correlation and the closed loop's negative ones at lags 2-3; from 9 bursts
-    # the debiased 1/ι̂ is 10-20 % low on white errors, from 12 within 8 %
+    # frame's lag-1 correlation and the closed loop's negative ones at lags 2-3 (from 9
+    # bursts, 2 lags, the mean-removal correction 1/(1 − M/n) is already 1.5)
     slow_error_min_bursts: int = 12
 
 
@@ -166,13 +166,12 @@ class SlowErrors:
     underestimated (``ι > 1``) or overestimated (``ι < 1``): ``ι = LRV / (γ₀ (1 + 2c w₁))``.
 
     The Bartlett estimate of a long-run variance with ``M = lags + 1`` over ``n`` samples about
-    their mean is biased low and noisy (relative variance ``r ≈ 4M/(3n)``, ~8 degrees of freedom
-    at 11 lags and 60 bursts), and a σ scaled by a noisy ι is too small on average: a NEES sees
-    ``1/ι̂``. The factor is ``ι̂ (1 + r)/(1 − r/2)``, which makes E[1/ι̂] ≈ 1 on white errors
-    (0.86–1.07 from 9 to 60 bursts; E[ι̂] 1.2–1.4, the price of estimating it; §17's ``ι̂ (1 + r)``
-    gave E[1/ι̂] 1.18–1.36). The lags grow with the bursts seen (``n/3 − 1``, at most ``lags``),
-    so ι acts from ``slow_error_min_bursts`` on (docs/estimation.md §19); bounded to
-    ``[slow_error_min, slow_error_max]``.
+    their mean is biased low by ~``M/n`` (the mean removed); the factor is ``ι̂ / (1 − M/n)``,
+    which makes E[ι̂] ≈ 1 on white and MA(1) errors (docs/estimation.md §23; §19's
+    ``ι̂ (1 + r)/(1 − r/2)``, ``r = 4M/3n``, made E[1/ι̂] ≈ 1 and E[ι̂] 1.2–1.4, to make up for a
+    propagated variance that was too small after the hand-over). The lags grow with the bursts
+    seen (``n/3 − 1``, at most ``lags``), so ι acts from ``slow_error_min_bursts`` on (§19);
+    bounded to ``[slow_error_min, slow_error_max]``.
     """
 
     def __init__(self, config: NoiseAdaptConfig) -> None:
@@ -200,11 +199,13 @@ class SlowErrors:
             return self.factor
         lrv = gamma[0] + 2.0 * sum((1.0 - j / (lags + 1)) * gamma[j] for j in range(1, lags + 1))
         model = gamma[0] * (1.0 + 2.0 * corr * (1.0 - 1.0 / (lags + 1)))
-        # the Bartlett estimate's bias and noise (relative variance r): a variance scaled by ι̂
-        # is seen through 1/ι̂, which this makes unbiased (docs/estimation.md §19)
-        rel_var = 4.0 * (lags + 1) / (3.0 * n)
-        debias = (1.0 + rel_var) / (1.0 - 0.5 * rel_var)
-        self.factor = min(max(debias * lrv / model, c.slow_error_min), c.slow_error_max)
+        # residuals about the window's own mean: each γ̂_j is low by ~LRV/n, the Bartlett sum
+        # by ~LRV M/n (M = lags + 1), so E[ι̂] ≈ ι after dividing by 1 − M/n. §19's larger
+        # factor (1 + r)/(1 − r/2), r = 4M/3n, made E[1/ι̂] ≈ 1 instead; it was needed only
+        # because the propagated variance was 1.3-1.5x too small after the hand-over on the
+        # synthetic bursts it was checked on (docs/estimation.md §23)
+        unbias = 1.0 / (1.0 - (lags + 1) / n)
+        self.factor = min(max(unbias * lrv / model, c.slow_error_min), c.slow_error_max)
         return self.factor
 
 

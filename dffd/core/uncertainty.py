@@ -40,6 +40,10 @@ from dffd.core.noise import (
 FloatArray = npt.NDArray[np.float64]
 
 FIXED_GAIN = ("cf1", "cf2", "lpv")
+# The share of a burst's error variance that its end frame carries, and so the most a following
+# burst that shares that frame can share (the vertex ≈ the end costs' difference over the
+# curvature: each end frame carries half; dffd.core.noise.shared_frame_correlation).
+SHARED_END_SHARE = 0.5
 
 
 class ErrorCovariance:
@@ -209,6 +213,188 @@ class ErrorCovariance:
             self.pb = [src[0]] if n == 1 else list(src)
 
 
+class SharedFrameCovariance(ErrorCovariance):
+    """Covariance of ``[e (n states), ε, k]`` of one linear estimator, per unit λ: the σ it
+    publishes (docs/estimation.md §23).
+
+    Two things differ from :class:`ErrorCovariance` (which the Kalman filter's hand-over rule
+    still reads, so no estimate changes):
+
+    * **The shared frame as MA(1).** Consecutive rolling bursts share an end frame, which
+      carries half of each one's error variance (:func:`shared_frame_correlation`); a burst's
+      error is correlated with the next one's and with no later one. ``ε ← c ε + u`` made it
+      AR(1) (correlation ``c^j`` at lag ``j``, long-run variance ``(1+c)/(1−c)`` = 3γ₀ against
+      the shared frame's 2γ₀), and a long average of such errors was stated up to 1.5× too
+      variable. Here ``k`` is the part of the held measurement's error that the next burst will
+      share (variance ½ of it); a new burst's error is ``a k + fresh`` with ``a`` set by the
+      correlation of the two, and its own end frame's half becomes the new ``k``.
+    * **The measurement part per unit λ.** The filters carry errors of measurements taken
+      while λ̂ was still being learned (from its prior 1; the data give 4-5): stated with the
+      λ̂ of their time, a start-up error that the LPV inherits at the hand-over and carries for
+      tens of seconds was stated up to 2× too small. The measurement part is propagated for
+      λ = 1 and scaled by the current λ̂ (``scale``, set by the owner), so the whole history is
+      re-weighted when λ̂ changes, as the process noise is (§17).
+    """
+
+    def __init__(self, n: int) -> None:
+        super().__init__(n)
+        self._rows = [[0.0] * (n + 2) for _ in range(n + 2)]
+        self.scale = 1.0  # λ̂: the measurement part's weight, set by the owner
+
+    @property
+    def var_z(self) -> float:
+        """Variance of the depth error."""
+        wz, wb = self.weights
+        v = self.scale * self._rows[0][0] + wz * self.pz[0]
+        if self.pb is not None:
+            v += wb * self.pb[0]
+        return max(v, 0.0)
+
+    def total(self) -> FloatArray:
+        """The whole covariance of ``[e, ε, k]`` at the current λ̂ and weights."""
+        n = self.n
+        wz, wb = self.weights
+        p = self.scale * np.array(self._rows)
+        p[:n, :n] += wz * np.array(self.pz).reshape(n, n)
+        if self.pb is not None:
+            p[:n, :n] += wb * np.array(self.pb).reshape(n, n)
+        return p
+
+    def error_block(self) -> tuple[float, ...]:
+        """The depth error's block (``n × n``, row-major) of :meth:`total`."""
+        n = self.n
+        t = self.total()
+        return tuple(float(t[i, j]) for i in range(n) for j in range(n))
+
+    def clone(self) -> SharedFrameCovariance:
+        """An independent copy."""
+        out = SharedFrameCovariance(self.n)
+        out._rows = [row[:] for row in self._rows]
+        out.pz = list(self.pz)
+        out.pb = None if self.pb is None else list(self.pb)
+        out.weights = self.weights
+        out.scale = self.scale
+        return out
+
+    def propagate(self, phi: Mat2, g: Vec2, ratio: float, qz: Mat2, qb: Mat2) -> None:
+        """One frame: ``e ← phi e − g ε + w``, ``ε ← ratio ε``, ``k ← ratio k`` (both parts of
+        the held measurement are transported with it); as :meth:`ErrorCovariance.propagate`."""
+        rows = self._rows
+        r2 = ratio * ratio
+        if self.n == 1:
+            (a, c, h), (_, d, f), (_, _, q) = rows
+            f0, g0 = phi[0], g[0]
+            e = f0 * f0 * a - 2.0 * f0 * c * g0 + d * g0 * g0
+            u = ratio * (f0 * c - g0 * d)
+            w = ratio * (f0 * h - g0 * f)
+            self._rows = [[e, u, w], [u, r2 * d, r2 * f], [w, r2 * f, r2 * q]]
+            self.pz = [f0 * f0 * self.pz[0] + qz[0]]
+            if self.pb is not None:
+                self.pb = [f0 * f0 * self.pb[0] + qb[0]]
+            return
+        (a00, a01, c0, h0), (_, a11, c1, h1), (_, _, d, f), (_, _, _, q) = rows
+        p00, p01, p10, p11 = phi
+        g0, g1 = g
+        b00, b01 = p00 * a00 + p01 * a01, p00 * a01 + p01 * a11
+        b10, b11 = p10 * a00 + p11 * a01, p10 * a01 + p11 * a11
+        x0, x1 = p00 * c0 + p01 * c1, p10 * c0 + p11 * c1  # Φ c
+        y0, y1 = p00 * h0 + p01 * h1, p10 * h0 + p11 * h1  # Φ h
+        e00 = b00 * p00 + b01 * p01 - 2.0 * x0 * g0 + d * g0 * g0
+        e01 = b00 * p10 + b01 * p11 - x0 * g1 - g0 * x1 + d * g0 * g1
+        e11 = b10 * p10 + b11 * p11 - 2.0 * x1 * g1 + d * g1 * g1
+        u0, u1 = ratio * (x0 - g0 * d), ratio * (x1 - g1 * d)
+        w0, w1 = ratio * (y0 - g0 * f), ratio * (y1 - g1 * f)
+        self._rows = [
+            [e00, e01, u0, w0],
+            [e01, e11, u1, w1],
+            [u0, u1, r2 * d, r2 * f],
+            [w0, w1, r2 * f, r2 * q],
+        ]
+        self.pz = _sandwich2(phi, self.pz, qz)
+        if self.pb is not None:
+            self.pb = _sandwich2(phi, self.pb, qb)
+
+    def replace_measurement(self, var_new: float, corr: float) -> None:
+        """The held measurement becomes a new one of variance ``var_new`` (per unit λ),
+        correlated ``corr`` with the old one through their shared frame: ``ε ← a k + fresh``,
+        ``k ← `` the new burst's end-frame half. The shared part carries at most the old error's
+        end-frame half (``corr`` above ½ is taken as ½)."""
+        n = self.n
+        rows = self._rows
+        d, q = rows[n][n], rows[n + 1][n + 1]
+        c = min(corr, SHARED_END_SHARE)
+        a = c * math.sqrt(var_new * d) / q if c > 0 and q > 0 and d > 0 else 0.0
+        half = SHARED_END_SHARE * var_new
+        for i in range(n):
+            rows[i][n] = rows[n][i] = a * rows[i][n + 1]  # cov(e, a k)
+            rows[i][n + 1] = rows[n + 1][i] = 0.0  # the new k is fresh
+        rows[n][n] = var_new  # a² var k + the fresh rest
+        rows[n][n + 1] = rows[n + 1][n] = half  # the new k is part of the new ε
+        rows[n + 1][n + 1] = half
+
+    def kalman_update(self, k: Sequence[float] | FloatArray) -> None:
+        """``e ← (I − K C) e − K ε`` (the held measurement just replaced; ``k`` unchanged):
+        ``e ← e − K ν`` with ``ν = e_z + ε``, written out (a 4×4 congruence per burst)."""
+        n = self.n
+        rows = self._rows
+        kk = [float(x) for x in k]
+        m = n + 2
+        cv = [rows[0][j] + rows[n][j] for j in range(m)]  # cov(ν, ·)
+        vv = cv[0] + cv[n]  # var ν
+        new = [row[:] for row in rows]
+        for i in range(n):
+            for j in range(m):
+                v = rows[i][j] - kk[i] * cv[j]
+                if j < n:
+                    v += -kk[j] * cv[i] + kk[i] * kk[j] * vv
+                new[i][j] = v
+                if j >= n:
+                    new[j][i] = v
+        self._rows = new
+        t = [[1.0 if i == j else 0.0 for j in range(n)] for i in range(n)]
+        for i in range(n):
+            t[i][0] -= kk[i]
+        tn = t
+        self.pz = _flat(_congruence(tn, _square(self.pz, n)))
+        if self.pb is not None:
+            self.pb = _flat(_congruence(tn, _square(self.pb, n)))
+
+    def innovation_variance(self) -> float:
+        """Variance of the innovation ``ν = y − ẑ = e_z + ε``."""
+        n = self.n
+        rows = self._rows
+        return self.var_z + self.scale * (rows[n][n] + 2.0 * rows[0][n])
+
+    def start(self, var_meas: float, var_second: float) -> None:
+        """A filter initialised at a measurement (variance per unit λ): ``e_z = −ε`` exactly,
+        half of ε in the end frame the next burst shares."""
+        n = self.n
+        half = SHARED_END_SHARE * float(var_meas)
+        p = [[0.0] * (n + 2) for _ in range(n + 2)]
+        p[0][0] = p[n][n] = float(var_meas)
+        p[0][n] = p[n][0] = -float(var_meas)
+        p[0][n + 1] = p[n + 1][0] = -half
+        p[n][n + 1] = p[n + 1][n] = p[n + 1][n + 1] = half
+        if n == 2:
+            p[1][1] = float(var_second)
+        self._rows = p
+        self.pz = [0.0] * (n * n)
+        if self.pb is not None:
+            self.pb = [0.0] * (n * n)
+
+    def copy_from(self, other: ErrorCovariance) -> None:
+        """Take ``other``'s depth error and measurement blocks (a seeded filter; others zeroed)."""
+        assert isinstance(other, SharedFrameCovariance)
+        n, m = self.n, other.n
+        idx = [0, m, m + 1] if n == 1 else [0, 1, m, m + 1]
+        rows = other._rows
+        self._rows = [[rows[i][j] for j in idx] for i in idx]
+        self.pz = [other.pz[0]] if n == 1 else list(other.pz)
+        if self.pb is not None:
+            src = other.pb if other.pb is not None else [0.0] * (m * m)
+            self.pb = [src[0]] if n == 1 else list(src)
+
+
 class Uncertainty:
     """Per-estimator error covariances, the adapted measurement noise and time offset."""
 
@@ -238,12 +424,17 @@ class Uncertainty:
         self._cf1_k = cf1_k
         self._cf2 = cf2_gains
         self._lpv = lpv
+        # the σ each estimator publishes: per unit λ, the shared frame as MA(1) (§23)
         self.errors = {
-            "cf1": ErrorCovariance(1),
-            "cf2": ErrorCovariance(2),
-            "lpv": ErrorCovariance(2),
-            "kf": ErrorCovariance(2),
+            "cf1": SharedFrameCovariance(1),
+            "cf2": SharedFrameCovariance(2),
+            "lpv": SharedFrameCovariance(2),
+            "kf": SharedFrameCovariance(2),
         }
+        # the Kalman filter's error as before §23 (λ̂ of each burst's time, the shared frame as
+        # AR(1)): what the start-up hand-over rule and κ² were chosen on, kept so that no
+        # estimate changes (EstimatorBank._seeding reads kf_covariance)
+        self._kf_model = ErrorCovariance(2)
         self._frames: tuple[int, ...] = ()
         self._weights: tuple[float, float] | None = None  # the last set by _set_weights
         self.measured_sigma: float | None = None  # adapted σ of the last measurement
@@ -264,10 +455,13 @@ class Uncertainty:
 
     def sigmas(self, depth: dict[str, float | None]) -> dict[str, float | None]:
         """Published σ of every estimator with a value in ``depth`` (None for the others):
-        ``√(P_zz ι) × t-factor`` (docs/estimation.md §17)."""
+        ``√(P_zz ι) × t-factor``, ``P_zz`` at the current λ̂ (docs/estimation.md §17, §23)."""
         if not self.started:
             return dict.fromkeys(depth)
         self._set_weights()
+        lam = self.scale.scale
+        for cov in self.errors.values():
+            cov.scale = lam  # the whole history at the current λ̂
         f = self.factor
         iota = math.sqrt(self.slow.factor)
         out: dict[str, float | None] = {}
@@ -289,17 +483,18 @@ class Uncertainty:
 
     def start(self, sigma_meas: float, frames: tuple[int, ...]) -> None:
         """The Kalman filter starts at a measurement of σ ``sigma_meas`` (the others follow)."""
-        var = sigma_meas * sigma_meas
-        kf = self.errors["kf"]
+        var = sigma_meas * sigma_meas  # λ̂ is its prior 1 here: per unit λ too
         n = self.noise
-        if n.sigma_b > 0 and kf.pb is not None:
-            # b's prior σ_b0 is the KF's model of a disturbance, as its b walk is: carried in
-            # the b part (as σ_b0²/σ_b² of a unit walk), so it goes when the data's process
-            # noise replaces the KF's (on a rigid target b shows in the size invariant)
-            kf.start(var, 0.0)
-            kf.pb[3] = (n.sigma_b0 / n.sigma_b) ** 2
-        else:
-            kf.start(var, n.sigma_b0**2)
+        for kf in (self.errors["kf"], self._kf_model):
+            if n.sigma_b > 0 and kf.pb is not None:
+                # b's prior σ_b0 is the KF's model of a disturbance, as its b walk is: carried
+                # in the b part (as σ_b0²/σ_b² of a unit walk), so it goes when the data's
+                # process noise replaces the KF's (on a rigid target b shows in the size
+                # invariant)
+                kf.start(var, 0.0)
+                kf.pb[3] = (n.sigma_b0 / n.sigma_b) ** 2
+            else:
+                kf.start(var, n.sigma_b0**2)
         for name in FIXED_GAIN:
             self.errors[name].copy_from(self.errors["kf"])
         self._frames = frames
@@ -333,7 +528,9 @@ class Uncertainty:
         lr = -math.log(max(ratio, 1e-6))
         gk = dt if abs(lr) < 1e-9 else dt * (1.0 - ratio) / lr
         qb_kf = (dt * dt * dt / 3.0, dt * dt / 2.0, dt * dt / 2.0, dt)
-        self.errors["kf"].propagate((ratio, gk, 0.0, 1.0), (0.0, 0.0), ratio, qz, qb_kf)
+        phi_kf = (ratio, gk, 0.0, 1.0)
+        self.errors["kf"].propagate(phi_kf, (0.0, 0.0), ratio, qz, qb_kf)
+        self._kf_model.propagate(phi_kf, (0.0, 0.0), ratio, qz, qb_kf)
 
     def process_weights(self) -> tuple[float, float]:
         """(w_z, w_b): intensities of the ln z and b random walks. The Kalman filter's
@@ -357,7 +554,7 @@ class Uncertainty:
         if w == self._weights:
             return  # every covariance has them already (and no b walk if w_b is 0)
         self._weights = w
-        for err in self.errors.values():
+        for err in (*self.errors.values(), self._kf_model):
             err.weights = w
             if w[1] == 0.0 and err.pb is not None:
                 err.drop_b_walk()  # the data's process noise has no b walk: for good
@@ -407,14 +604,16 @@ class Uncertainty:
         s = self.innovation_variance(sigma_fit, frames) * self.consistency.scale
         self.consistency.update(innovation, s)
         self._frames = frames
-        kf = self.errors["kf"]
         sigma = self.measurement_sigma(sigma_fit)
         var = sigma * sigma
-        for err in self.errors.values():
-            err.replace_measurement(var, corr)
         p00 = float(kf_p[0, 0])
         den = p00 + var
-        kf.kalman_update((p00 / den, float(kf_p[1, 0]) / den))
+        gain = (p00 / den, float(kf_p[1, 0]) / den)  # the KF's, told λ̂-scaled noise
+        for err in self.errors.values():
+            err.replace_measurement(sigma_fit * sigma_fit, corr)  # per unit λ
+        self.errors["kf"].kalman_update(gain)
+        self._kf_model.replace_measurement(var, corr)
+        self._kf_model.kalman_update(gain)
         self.measured_sigma = sigma
         return sigma
 
@@ -422,16 +621,17 @@ class Uncertainty:
         """Predicted variance of the KF's innovation for a burst of fit σ ``sigma_fit`` on
         ``frames`` (its error and the new measurement's, with the current λ; κ² not included)."""
         self._set_weights()
-        probe = self.errors["kf"].clone()
+        probe = self._kf_model.clone()
         probe.replace_measurement(
             self.measurement_sigma(sigma_fit) ** 2, shared_frame_correlation(self._frames, frames)
         )
         return probe.innovation_variance()
 
     def kf_covariance(self) -> tuple[float, float, float, float]:
-        """The KF's [z, b] error covariance (row-major) at the current process noise."""
+        """The KF's [z, b] error covariance (row-major) at the current process noise, as the
+        start-up hand-over rule was chosen on (each burst at its time's λ̂, AR(1); §19, §23)."""
         self._set_weights()
-        p00, p01, p10, p11 = self.errors["kf"].error_block()
+        p00, p01, p10, p11 = self._kf_model.error_block()
         return p00, p01, p10, p11
 
     def hand_over(self) -> None:
