@@ -5,7 +5,9 @@ driven by the process noise and by the error ``ε`` of the measurement it curren
 held measurement is the transported ``y = R_m/s`` of the last accepted burst: between bursts
 ``ε`` scales with the size ratio exactly as ``y`` does, and at a burst it is replaced by the
 new measurement's error, correlated with the old one when the two bursts share a frame.
-:class:`ErrorCovariance` carries the covariance of ``[e, ε]`` for one estimator:
+:class:`ErrorCovariance` carries the covariance of ``[e, ε]`` for one estimator, and
+:class:`SharedFrameCovariance` — what is published — that of ``[e, ε, k]`` per unit λ, with the
+shared frame as the MA(1) it is (docs/estimation.md §23):
 
 * fixed-gain filters (CF1, CF2, LPV): over a frame ``e ← Φ e − g ε``, ``ε ← φ ε`` with ``Φ``
   the filter's own exact transition and ``g`` its exact response to a unit held ``y``
