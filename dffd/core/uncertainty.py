@@ -241,7 +241,7 @@ class SharedFrameCovariance(ErrorCovariance):
     def __init__(self, n: int) -> None:
         super().__init__(n)
         self._rows = [[0.0] * (n + 2) for _ in range(n + 2)]
-        self.scale = 1.0  # λ̂: the measurement part's weight, set by the owner
+        self.scale = 1.0  # λ̂: the measurement part's weight, set by the owner when λ̂ moves
 
     @property
     def var_z(self) -> float:
@@ -461,9 +461,6 @@ class Uncertainty:
         if not self.started:
             return dict.fromkeys(depth)
         self._set_weights()
-        lam = self.scale.scale
-        for cov in self.errors.values():
-            cov.scale = lam  # the whole history at the current λ̂
         f = self.factor
         iota = math.sqrt(self.slow.factor)
         out: dict[str, float | None] = {}
@@ -585,6 +582,8 @@ class Uncertainty:
             corr = shared_frame_correlation(prev_frames, frames)
             var_d = rel_sigma_fit**2 + prev_sigma**2 - 2.0 * corr * rel_sigma_fit * prev_sigma
             self.scale.update(log_size - prev, self.scale.scale * var_d)
+            for cov in self.errors.values():
+                cov.scale = self.scale.scale  # the whole history at the current λ̂ (§23)
         var = self.scale.scale * rel_sigma_fit * rel_sigma_fit
         return self.offset.update(log_size, rho, var)
 
