@@ -163,10 +163,14 @@ class EstimatorBank:
             prev_size = self.cf2_size if self.cf2_size is not None else size_m
             self.cf2_size = prev_size + (size_m - prev_size) / n  # running mean
         if not self.initialised:
-            self.kf.reset(y_now, max(sigma_now, 1e-3))
+            # b known at 0 until the first update gives the target's speed (DepthKF.open_b)
+            self.kf.reset(y_now, max(sigma_now, 1e-3), sigma_b=0.0)
             self.unc.start(max(sigma_now, 1e-3), m.frame_indices)
             self.initialised = True
         else:
+            if self.n_accepted == 2:
+                self.kf.open_b(rate * y_now)  # |ż| = |ρ| z at the first update
+                self._seed_cost = None  # the KF's cost is compared from b's prior on
             # the noise the KF is told is adapted from its innovations (noise.py)
             innov = y_now - (self.kf.z or y_now)
             kf_sigma = self.unc.measurement(innov, sigma_now, self.kf.p, m.frame_indices)

@@ -266,7 +266,11 @@ class KFNoise:
     # Not used by the pipeline any more: the measurement noise is the fit's σ scaled by a ratio
     # adapted online (dffd/core/noise.py, docs/estimation.md §9); kept for old --set overrides.
     sigma_v_mm: float = 0.0004
-    sigma_b0: float = 0.05  # m/s: initial uncertainty of b
+    # m/s: the largest initial uncertainty of b. On a rigid target z s = R carries the motion
+    # (ż = −ρz exactly) and b is a model error that only motion brings, so b's prior σ is the
+    # target's speed |ρ z| at the first update, at most this (DepthKF.open_b): on a static
+    # target 0.05 m/s let the first bursts' noise be read as a velocity (docs/estimation.md §24).
+    sigma_b0: float = 0.05
 
 
 @dataclass(frozen=True, slots=True)
@@ -326,12 +330,32 @@ class DepthKF:
         """Standard deviation of the depth estimate."""
         return None if self._x is None else math.sqrt(max(self._p[0], 0.0))
 
-    def reset(self, z: float, sigma_z: float) -> None:
-        """Initialise at ``z`` with uncertainty ``sigma_z`` and b = 0."""
+    def reset(self, z: float, sigma_z: float, sigma_b: float | None = None) -> None:
+        """Initialise at ``z`` with uncertainty ``sigma_z`` and b = 0 with σ ``sigma_b``
+        (default ``sigma_b0``; 0 to set it later with :meth:`open_b`)."""
+        sb = self.noise.sigma_b0 if sigma_b is None else sigma_b
         self._x = (float(z), 0.0)
-        self._p = (float(sigma_z**2), 0.0, 0.0, float(self.noise.sigma_b0**2))
+        self._p = (float(sigma_z**2), 0.0, 0.0, float(sb**2))
         if self.trace is not None:
             self.trace.append(KFTraceEvent("reset", self.x, self.p))
+
+    def open_b(self, speed: float) -> None:
+        """Add b's prior: σ = the target's speed ``|speed|`` (m/s), at most ``sigma_b0``.
+
+        The estimator bank resets with b known (σ 0) and opens it at the first update: b is a
+        model error of ż = −ρz that only motion brings (on a rigid target z s = R carries the
+        motion exactly; a static target's b is 0), and at the reset the size rate is the
+        acquisition's (docs/estimation.md §24). Added to b's variance (its walk since the reset
+        stays), so P stays positive semi-definite.
+        """
+        if self._x is None:
+            return
+        p00, p01, p10, p11 = self._p
+        prior = min(abs(speed), self.noise.sigma_b0) ** 2
+        self._p = (p00, p01, p10, p11 + prior)
+        if self.trace is not None:  # for the smoother: process noise added to b, no motion
+            q = np.array([[0.0, 0.0], [0.0, prior]])
+            self.trace.append(KFTraceEvent("predict", self.x, self.p, phi=np.eye(2), q=q))
 
     @staticmethod
     def transition(ratio: float, dt: float) -> FloatArray:
