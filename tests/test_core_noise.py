@@ -166,6 +166,41 @@ def test_propagated_sigma_matches_monte_carlo_for_every_estimator() -> None:
         assert spread == pytest.approx(predicted[name], rel=0.15), name
 
 
+def _slow_factor_written_out(window: list[tuple[float, float]], corr: float) -> float:
+    """SlowErrors' factor from its definition, in plain Python sums over ``window``."""
+    cfg = NoiseAdaptConfig()
+    n = len(window)
+    lags = min(cfg.slow_error_lags, n // 3 - 1)
+    w_sum = sum(1.0 / (s * s) for _, s in window)
+    mean = sum(x / (s * s) for x, s in window) / w_sum
+    r = [(x - mean) / s for x, s in window]
+    gamma = [sum(r[k] * r[k - j] for k in range(j, n)) / n for j in range(lags + 1)]
+    lrv = gamma[0] + 2.0 * sum((1.0 - j / (lags + 1)) * gamma[j] for j in range(1, lags + 1))
+    model = gamma[0] * (1.0 + 2.0 * corr * (1.0 - 1.0 / (lags + 1)))
+    raw = lrv / model / (1.0 - (lags + 1) / n)
+    return min(max(raw, cfg.slow_error_min), cfg.slow_error_max)
+
+
+def test_slow_errors_factor_is_its_definition_over_the_sliding_window() -> None:
+    """The factor after every burst equals the autocovariance sums written out over the last
+    ``window_bursts`` measurements (the window slides: 90 bursts through a 60-burst window)."""
+    rng = np.random.default_rng(5)
+    cfg = NoiseAdaptConfig()
+    est = SlowErrors(cfg)
+    seen: list[tuple[float, float]] = []
+    e = 0.0
+    for k in range(90):
+        e = 0.7 * e + rng.normal(0.0, 0.004)
+        x, s = math.log(0.04) + e, float(rng.uniform(0.002, 0.01))
+        factor = est.update(x, s, 0.3)
+        seen.append((x, s))
+        window = seen[-int(cfg.window_bursts) :]
+        if len(window) >= cfg.slow_error_min_bursts:
+            assert factor == pytest.approx(_slow_factor_written_out(window, 0.3), rel=1e-12), k
+        else:
+            assert factor == 1.0
+
+
 def test_slow_errors_factor_sees_errors_that_do_not_average_out() -> None:
     """White size-measurement errors: the filters' variance model holds (factor ~1); errors
     that wander slowly (AR(1), coefficient 0.9): an average of many has ~10x the variance the
