@@ -134,6 +134,20 @@ def test_the_sobel_pair_gives_opencvs_values_bit_for_bit() -> None:
             assert np.array_equal(gy, want_y), (impl.__name__, h, w)
 
 
+def test_the_slow_error_autocovariances_are_the_twins_bit_for_bit() -> None:
+    """slow_error_gammas (SlowErrors' sums) gives its twin's Python sums bit for bit, from the
+    first window it runs on (12 bursts, 3 lags) to a full one (60, 10)."""
+    rng = np.random.default_rng(9)
+    for n, lags in ((12, 3), (31, 9), (60, 10)):
+        x = np.log(0.04) + np.cumsum(rng.normal(0.0, 0.003, n))
+        s = rng.uniform(0.002, 0.02, n)
+        fast, twin = np.full(lags + 1, np.nan), np.full(lags + 1, np.nan)
+        kernels.slow_error_gammas(x, s, lags, fast)
+        kernels_numpy.slow_error_gammas(x, s, lags, twin)
+        assert np.array_equal(fast, twin), n
+        assert fast[0] > 0
+
+
 def test_the_acquisition_mask_gives_opencvs_threshold_and_mask_bit_for_bit() -> None:
     """acquire_mask (both implementations) against OpenCV's resize, 5×5 blur and Otsu threshold
     on frames of a disc, noise and flat regions, whole (halved) and as regions (as is), of

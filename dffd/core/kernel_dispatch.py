@@ -195,6 +195,12 @@ class KernelSet(Protocol):
     def focus_cost(self, peak_sq: FloatArray, trim_fraction: float, out: FloatArray, /) -> int:
         """Cost (2) of a frame's per-normal peaks into ``out`` = (g, σ_g); 0 when none."""
 
+    def slow_error_gammas(
+        self, x: FloatArray, s: FloatArray, lags: int, gamma: FloatArray, /
+    ) -> None:
+        """Autocovariances (lags 0 … ``lags``) of the residuals ``(x − m)/s`` about the
+        1/s²-weighted mean, into ``gamma``."""
+
 
 _active: KernelSet | None = None  # None: nothing chosen yet (the compiled kernels on first use)
 _compiled = False

@@ -62,6 +62,7 @@ from dffd.core.kernels_edges import (  # the focus measure's and the gradient's,
 )
 from dffd.core.kernels_track import (  # the 3D tracker's kernels, dispatched with these
     focus_cost,  # the focus cost (2), dispatched too
+    slow_error_gammas,  # the size invariant's autocovariances (noise.SlowErrors), too
     track_combine,
     track_predict,
     track_size_update,
@@ -80,6 +81,7 @@ __all__ = [
     "polarity",
     "resample",
     "sample_normals",
+    "slow_error_gammas",
     "sobel_pair",
     "track_combine",
     "track_predict",

@@ -57,6 +57,7 @@ from dffd.core.kernel_layout import (
 )
 from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatched with these
     focus_cost,  # the focus cost (2), dispatched too
+    slow_error_gammas,  # the size invariant's autocovariances (noise.SlowErrors), too
     track_combine,
     track_predict,
     track_size_update,
@@ -73,6 +74,7 @@ __all__ = [
     "polarity",
     "resample",
     "sample_normals",
+    "slow_error_gammas",
     "sobel_pair",
     "track_combine",
     "track_predict",

@@ -34,6 +34,7 @@ from dffd.core.kernel_layout import (
 
 __all__ = [
     "focus_cost",
+    "slow_error_gammas",
     "track_combine",
     "track_predict",
     "track_size_update",
@@ -526,3 +527,28 @@ def focus_cost(peak_sq: FloatArray, trim_fraction: float, out: FloatArray) -> in
     out[0] = g
     out[1] = g * se / mean
     return 1
+
+
+# -- the size invariant's autocovariances (dffd.core.noise.SlowErrors) --------------------------
+@_jit(f"void({_V}, {_V}, int64, {_V})")
+def slow_error_gammas(x: FloatArray, s: FloatArray, lags: int, gamma: FloatArray) -> None:
+    """``gamma[j] = Σ_k r_k r_{k−j} / n`` for ``j = 0 … lags`` of the residuals ``r_k = (x_k −
+    m)/s_k`` about the weighted mean ``m = Σ (x/s²) / Σ (1/s²)``: every sum left to right, as
+    the NumPy twin's Python sums (the same values bit for bit; ~1 µs instead of ~50 µs a burst
+    in the core's loop)."""
+    n = x.shape[0]
+    w_sum = 0.0
+    for k in range(n):
+        w_sum += 1.0 / (s[k] * s[k])
+    mean = 0.0
+    for k in range(n):
+        mean += x[k] / (s[k] * s[k])
+    mean /= w_sum
+    r = np.empty(n)
+    for k in range(n):
+        r[k] = (x[k] - mean) / s[k]
+    for j in range(lags + 1):
+        acc = 0.0
+        for k in range(j, n):
+            acc += r[k] * r[k - j]
+        gamma[j] = acc / n

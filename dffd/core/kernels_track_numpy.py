@@ -39,6 +39,7 @@ __all__ = [
     "mmae_probabilities",
     "predict_models",
     "size_update",
+    "slow_error_gammas",
     "sym_stack",
     "track_combine",
     "track_predict",
@@ -79,6 +80,19 @@ def focus_cost(peak_sq: FloatArray, trim_fraction: float, out: FloatArray) -> in
     out[0] = g
     out[1] = g * se / mean
     return 1
+
+
+def slow_error_gammas(x: FloatArray, s: FloatArray, lags: int, gamma: FloatArray) -> None:
+    """The autocovariances of the size invariant's normalised residuals into ``gamma``
+    (:func:`dffd.core.kernels_track.slow_error_gammas`): Python sums left to right, the
+    kernel's values bit for bit."""
+    xs, ss = x.tolist(), s.tolist()
+    n = len(xs)
+    w_sum = sum(1.0 / (si * si) for si in ss)
+    mean = sum(xi / (si * si) for xi, si in zip(xs, ss, strict=True)) / w_sum
+    r = [(xi - mean) / si for xi, si in zip(xs, ss, strict=True)]
+    for j in range(lags + 1):
+        gamma[j] = sum(r[k] * r[k - j] for k in range(j, n)) / n
 
 
 def track_predict(  # noqa: PLR0917 - the compiled kernels' positional signature

@@ -33,6 +33,8 @@ from typing import Literal
 
 import numpy as np
 
+from dffd.core import kernel_dispatch
+
 ProcessNoise = Literal["data", "drift", "kf"]
 
 # The burst's parabola is a model of the cost: its vertex moves by ``slope × `` the true offset
@@ -178,11 +180,12 @@ class SlowErrors:
 
     def __init__(self, config: NoiseAdaptConfig) -> None:
         self.config = config
-        # the window (ln size, relative σ) as rows of one array, oldest first: the sums below
-        # are NumPy calls on its columns (a Python sum over 60 bursts × 11 lags cost ~60 µs a
-        # burst, most of this class's time on a tracking frame)
-        self._x = np.empty((int(config.window_bursts), 2))
+        # the window, oldest first: ln sizes and relative σ (the arrays the kernel reads)
+        size = int(config.window_bursts)
+        self._log_size = np.empty(size)
+        self._sigma = np.empty(size)
         self._n = 0
+        self._gamma = np.empty(config.slow_error_lags + 1)
         self.factor = 1.0
 
     def update(self, log_size: float, sigma_rel: float, corr: float) -> float:
@@ -190,26 +193,25 @@ class SlowErrors:
         c = self.config
         if not (sigma_rel > 0 and math.isfinite(log_size)):
             return self.factor
-        buf = self._x
-        if self._n == len(buf):
-            buf[:-1] = buf[1:]  # the window is full: the oldest burst leaves
+        x, sig = self._log_size, self._sigma
+        if self._n == len(x):  # the window is full: the oldest burst leaves
+            x[:-1] = x[1:]
+            sig[:-1] = sig[1:]
         else:
             self._n += 1
         n = self._n
-        buf[n - 1] = (log_size, sigma_rel)
+        x[n - 1] = log_size
+        sig[n - 1] = sigma_rel
         # the lags grow with the window (a third of it, at most ``slow_error_lags``): the
         # debiased estimate below is as honest at 12 bursts and 3 lags as at 60 and 10
         lags = min(c.slow_error_lags, n // 3 - 1)
         if n < c.slow_error_min_bursts or lags < 1:
             return self.factor
-        x, s = buf[:n, 0], buf[:n, 1]
-        w = 1.0 / (s * s)
-        mean = float(x @ w) / float(w.sum())
-        r = (x - mean) / s
-        # γ_j = Σ_k r_k r_{k−j} / n for j = 0 … lags: the autocorrelation's non-negative lags
-        # (np.correlate's "full" output from its middle on); the same sums as written out, to
-        # rounding (~1e-14 of γ₀)
-        gamma = (np.correlate(r, r, "full")[n - 1 : n + lags] / n).tolist()
+        # γ_j = Σ_k r_k r_{k−j} / n of the residuals r = (x − m)/σ about the 1/σ²-weighted
+        # mean, j = 0 … lags: one kernel call (Python's sums over 60 bursts × 11 lags cost
+        # ~50 µs a burst in the core's loop)
+        kernel_dispatch.current().slow_error_gammas(x[:n], sig[:n], lags, self._gamma)
+        gamma = self._gamma[: lags + 1].tolist()
         if gamma[0] <= 0:
             return self.factor
         lrv = gamma[0] + 2.0 * sum((1.0 - j / (lags + 1)) * gamma[j] for j in range(1, lags + 1))
