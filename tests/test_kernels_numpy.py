@@ -148,6 +148,24 @@ def test_the_slow_error_autocovariances_are_the_twins_bit_for_bit() -> None:
         assert fast[0] > 0
 
 
+def test_the_world_point_and_its_covariance_are_the_twins_bit_for_bit() -> None:
+    """cartesian_point (a centroid at pan/tilt and depth as a world point, with its
+    covariance) gives its twin's float operations bit for bit, over the head's range."""
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        u, v = rng.uniform(0.0, 640.0), rng.uniform(0.0, 480.0)
+        pan, tilt = rng.uniform(-100.0, 100.0), rng.uniform(-25.0, 25.0)
+        z = rng.uniform(0.5, 30.0)
+        args = (u, v, pan, tilt, z, 0.02 * z, 0.3, 0.02, 0.0074, 35.0, 319.5, 239.5)
+        fast_w, fast_c = np.full(3, np.nan), np.full((3, 3), np.nan)
+        twin_w, twin_c = np.full(3, np.nan), np.full((3, 3), np.nan)
+        kernels.cartesian_point(*args, fast_w, fast_c)
+        kernels_numpy.cartesian_point(*args, twin_w, twin_c)
+        assert np.array_equal(fast_w, twin_w), args
+        assert np.array_equal(fast_c, twin_c), args
+        assert np.array_equal(fast_c, fast_c.T)
+
+
 def test_the_acquisition_mask_gives_opencvs_threshold_and_mask_bit_for_bit() -> None:
     """acquire_mask (both implementations) against OpenCV's resize, 5×5 blur and Otsu threshold
     on frames of a disc, noise and flat regions, whole (halved) and as regions (as is), of

@@ -195,6 +195,26 @@ class KernelSet(Protocol):
     def focus_cost(self, peak_sq: FloatArray, trim_fraction: float, out: FloatArray, /) -> int:
         """Cost (2) of a frame's per-normal peaks into ``out`` = (g, σ_g); 0 when none."""
 
+    def cartesian_point(  # noqa: PLR0917 - the kernels' positional signature
+        self,
+        u_px: float,
+        v_px: float,
+        pan_deg: float,
+        tilt_deg: float,
+        z: float,
+        sigma_z_m: float,
+        sigma_px: float,
+        sigma_angle_deg: float,
+        pixel_pitch_mm: float,
+        image_distance_mm: float,
+        cx: float,
+        cy: float,
+        world: FloatArray,
+        cov: FloatArray,
+        /,
+    ) -> None:
+        """A centroid at pan/tilt and depth as a world point and its covariance."""
+
     def slow_error_gammas(
         self, x: FloatArray, s: FloatArray, lags: int, gamma: FloatArray, /
     ) -> None:

@@ -61,6 +61,7 @@ from dffd.core.kernels_edges import (  # the focus measure's and the gradient's,
     sobel_pair,
 )
 from dffd.core.kernels_track import (  # the 3D tracker's kernels, dispatched with these
+    cartesian_point,  # a direction and depth as a world point (tracking3d), too
     focus_cost,  # the focus cost (2), dispatched too
     slow_error_gammas,  # the size invariant's autocovariances (noise.SlowErrors), too
     track_combine,
@@ -73,6 +74,7 @@ __all__ = [
     "CacheReport",
     "acquire_mask",
     "cache_report",
+    "cartesian_point",
     "edge_moments",
     "fit_pass",
     "fit_passes",

@@ -56,6 +56,7 @@ from dffd.core.kernel_layout import (
     TINY,
 )
 from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatched with these
+    cartesian_point,  # a direction and depth as a world point (tracking3d), too
     focus_cost,  # the focus cost (2), dispatched too
     slow_error_gammas,  # the size invariant's autocovariances (noise.SlowErrors), too
     track_combine,
@@ -66,6 +67,7 @@ from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatche
 
 __all__ = [
     "acquire_mask",
+    "cartesian_point",
     "edge_moments",
     "fit_pass",
     "fit_passes",

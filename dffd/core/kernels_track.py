@@ -33,6 +33,7 @@ from dffd.core.kernel_layout import (
 )
 
 __all__ = [
+    "cartesian_point",
     "focus_cost",
     "slow_error_gammas",
     "track_combine",
@@ -552,3 +553,72 @@ def slow_error_gammas(x: FloatArray, s: FloatArray, lags: int, gamma: FloatArray
         for k in range(j, n):
             acc += r[k] * r[k - j]
         gamma[j] = acc / n
+
+
+# -- a direction and depth as a world point (dffd.core.tracking3d.cartesian_measurement) -------
+@_jit(f"void({', '.join(['float64'] * 12)}, {_V}, {_M})")
+def cartesian_point(  # noqa: PLR0917 - the measurement's fields and the camera's
+    u_px: float,
+    v_px: float,
+    pan_deg: float,
+    tilt_deg: float,
+    z: float,
+    sigma_z_m: float,
+    sigma_px: float,
+    sigma_angle_deg: float,
+    pixel_pitch_mm: float,
+    image_distance_mm: float,
+    cx: float,
+    cy: float,
+    world: FloatArray,
+    cov: FloatArray,
+) -> None:
+    """The world point of centroid (``u_px``, ``v_px``) at pan/tilt (degrees) and depth ``z``
+    into ``world`` and its covariance (first-order propagation of the σ of the centroid, the
+    depth and the angles) into ``cov``: the camera's pixel pitch and image distance (mm) and
+    principal point (``cx``, ``cy``). The NumPy twin's float operations in its order, so its
+    values bit for bit (~20 µs of Python floats and two array builds a tracking frame)."""
+    k = pixel_pitch_mm / image_distance_mm
+    du = u_px - cx
+    dv = v_px - cy
+    q0, q1, q2 = k * du * z, k * dv * z, z  # the camera-frame point
+    p, t = math.radians(pan_deg), math.radians(tilt_deg)
+    cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
+    # rot = R_pan R_tilt, and the derivative matrices d(R_pan)/dp R_tilt and R_pan d(R_tilt)/dt,
+    # written out by rows; every dot product summed left to right
+    r00, r01, r02 = cp, sp * st, sp * ct
+    r10, r11, r12 = 0.0, ct, -st
+    r20, r21, r22 = -sp, cp * st, cp * ct
+    p00, p01, p02 = -sp, cp * st, cp * ct
+    p10, p11, p12 = 0.0, 0.0, 0.0
+    p20, p21, p22 = -cp, -sp * st, -sp * ct
+    t00, t01, t02 = 0.0, sp * ct, -sp * st
+    t10, t11, t12 = 0.0, -st, -ct
+    t20, t21, t22 = 0.0, cp * ct, -cp * st
+    world[0] = r00 * q0 + r01 * q1 + r02 * q2
+    world[1] = r10 * q0 + r11 * q1 + r12 * q2
+    world[2] = r20 * q0 + r21 * q1 + r22 * q2
+    # the Jacobian with respect to (u, v, z, pan, tilt), one row per world axis
+    kz = k * z
+    u0, u1 = k * du, k * dv  # the unit-depth point (u0, u1, 1)
+    a0, a1, a2 = r00 * kz, r01 * kz, r00 * u0 + r01 * u1 + r02 * 1.0
+    a3, a4 = p00 * q0 + p01 * q1 + p02 * q2, t00 * q0 + t01 * q1 + t02 * q2
+    b0, b1, b2 = r10 * kz, r11 * kz, r10 * u0 + r11 * u1 + r12 * 1.0
+    b3, b4 = p10 * q0 + p11 * q1 + p12 * q2, t10 * q0 + t11 * q1 + t12 * q2
+    c0, c1, c2 = r20 * kz, r21 * kz, r20 * u0 + r21 * u1 + r22 * 1.0
+    c3, c4 = p20 * q0 + p21 * q1 + p22 * q2, t20 * q0 + t21 * q1 + t22 * q2
+    sa = math.radians(sigma_angle_deg)
+    v0, v1, v2 = sigma_px * sigma_px, sigma_px * sigma_px, sigma_z_m * sigma_z_m
+    v3, v4 = sa * sa, sa * sa
+    # J diag(var) Jᵀ: symmetric as computed (each entry one sum of the five terms)
+    wa0, wa1, wa2, wa3, wa4 = a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4
+    wb0, wb1, wb2, wb3, wb4 = b0 * v0, b1 * v1, b2 * v2, b3 * v3, b4 * v4
+    aa = wa0 * a0 + wa1 * a1 + wa2 * a2 + wa3 * a3 + wa4 * a4
+    ab = wa0 * b0 + wa1 * b1 + wa2 * b2 + wa3 * b3 + wa4 * b4
+    ac = wa0 * c0 + wa1 * c1 + wa2 * c2 + wa3 * c3 + wa4 * c4
+    bb = wb0 * b0 + wb1 * b1 + wb2 * b2 + wb3 * b3 + wb4 * b4
+    bc = wb0 * c0 + wb1 * c1 + wb2 * c2 + wb3 * c3 + wb4 * c4
+    cc = c0 * v0 * c0 + c1 * v1 * c1 + c2 * v2 * c2 + c3 * v3 * c3 + c4 * v4 * c4
+    cov[0, 0], cov[0, 1], cov[0, 2] = aa, ab, ac
+    cov[1, 0], cov[1, 1], cov[1, 2] = ab, bb, bc
+    cov[2, 0], cov[2, 1], cov[2, 2] = ac, bc, cc

@@ -719,43 +719,15 @@ def _cartesian(  # noqa: PLR0917 - a DirectionDepth's fields
     camera: CameraModel,
 ) -> tuple[FloatArray, FloatArray]:
     """:func:`cartesian_measurement` on the measurement's fields."""
-    k = camera.pixel_pitch_mm / camera.image_distance_mm
-    du = centroid_px[0] - camera.principal_point_px[0]
-    dv = centroid_px[1] - camera.principal_point_px[1]
-    q0, q1, q2 = k * du * z, k * dv * z, z  # the camera-frame point
-    p, t = math.radians(pan_deg), math.radians(tilt_deg)
-    cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
-    # Written out on floats (once per tracking frame; NumPy's per-call cost on 3×3 products is
-    # most of the work): rot = R_pan R_tilt, and the products of the derivative matrices
-    # d(R_pan)/dp R_tilt and R_pan d(R_tilt)/dt, rows; every dot product summed left to right.
-    rot = ((cp, sp * st, sp * ct), (0.0, ct, -st), (-sp, cp * st, cp * ct))
-    d_rot_pan = ((-sp, cp * st, cp * ct), (0.0, 0.0, 0.0), (-cp, -sp * st, -sp * ct))
-    d_rot_tilt = ((0.0, sp * ct, -sp * st), (0.0, -st, -ct), (0.0, cp * ct, -cp * st))
-    world = [r0 * q0 + r1 * q1 + r2 * q2 for r0, r1, r2 in rot]
-    # Jacobian with respect to (u, v, z, pan, tilt), rows of 5.
-    kz = k * z
-    u0, u1 = k * du, k * dv  # the unit-depth point (u0, u1, 1)
-    jac = [
-        (r0 * kz, r1 * kz, r0 * u0 + r1 * u1 + r2 * 1.0,
-         dp0 * q0 + dp1 * q1 + dp2 * q2, dt0 * q0 + dt1 * q1 + dt2 * q2)
-        for (r0, r1, r2), (dp0, dp1, dp2), (dt0, dt1, dt2) in zip(
-            rot, d_rot_pan, d_rot_tilt, strict=True
-        )
-    ]  # fmt: skip
-    sa = math.radians(sigma_angle_deg)
-    var = (sigma_px**2, sigma_px**2, sigma_z_m**2, sa * sa, sa * sa)
-    (a0, a1, a2, a3, a4), (b0, b1, b2, b3, b4), (c0, c1, c2, c3, c4) = jac
-    v0, v1, v2, v3, v4 = var
-    # J diag(var) Jᵀ: symmetric as computed (each entry one sum of the five terms).
-    wa = (a0 * v0, a1 * v1, a2 * v2, a3 * v3, a4 * v4)
-    wb = (b0 * v0, b1 * v1, b2 * v2, b3 * v3, b4 * v4)
-    aa = wa[0] * a0 + wa[1] * a1 + wa[2] * a2 + wa[3] * a3 + wa[4] * a4
-    ab = wa[0] * b0 + wa[1] * b1 + wa[2] * b2 + wa[3] * b3 + wa[4] * b4
-    ac = wa[0] * c0 + wa[1] * c1 + wa[2] * c2 + wa[3] * c3 + wa[4] * c4
-    bb = wb[0] * b0 + wb[1] * b1 + wb[2] * b2 + wb[3] * b3 + wb[4] * b4
-    bc = wb[0] * c0 + wb[1] * c1 + wb[2] * c2 + wb[3] * c3 + wb[4] * c4
-    cc = c0 * v0 * c0 + c1 * v1 * c1 + c2 * v2 * c2 + c3 * v3 * c3 + c4 * v4 * c4
-    return np.array(world), np.array([[aa, ab, ac], [ab, bb, bc], [ac, bc, cc]])
+    # one kernel call (the float operations as the NumPy twin writes them out: once per
+    # tracking frame, where Python's floats and the two array builds cost ~20 µs)
+    world, cov = np.empty(3), np.empty((3, 3))
+    kernel_dispatch.current().cartesian_point(
+        centroid_px[0], centroid_px[1], pan_deg, tilt_deg, z, sigma_z_m, sigma_px,
+        sigma_angle_deg, camera.pixel_pitch_mm, camera.image_distance_mm,
+        camera.principal_point_px[0], camera.principal_point_px[1], world, cov,
+    )  # fmt: skip
+    return world, cov
 
 
 def _sym(m: FloatArray) -> FloatArray:
