@@ -70,7 +70,7 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from dffd.calibrate_check import MAX_SWEEPS, TableCheck, check_table
+from dffd.calibrate_check import MAX_SWEEPS, TableCheck, check_table, table_sigma_per_depth
 from dffd.calibrate_fit import (
     VERTEX_WINDOW_BLUR_PX,
     CalibrationError,
@@ -291,6 +291,12 @@ async def calibrate_table(
         table = dataclasses.replace(
             table, lens=dataclasses.replace(table.lens, vertex_response=response)
         )
+    if check is not None:
+        # the table's σ where each depth is (docs/estimation.md §25), not one number
+        per_depth = table_sigma_per_depth(table, check)
+        table = dataclasses.replace(
+            table, lens=dataclasses.replace(table.lens, table_sigma_v_at=per_depth)
+        )
     return CalibrationResult(table, check, latency, tuple(points), tuple(repeated), tuple(lines))
 
 
@@ -371,6 +377,9 @@ def lens_toml(
     f_number = f"f_number = {lens.f_number!r}\n" if lens.f_number is not None else ""
     if lens.table_sigma_v_mm > 0:  # the table's own standard error (docs/estimation.md §14)
         f_number += f"table_sigma_v_mm = {lens.table_sigma_v_mm:.3e}\n"
+    if lens.table_sigma_v_at:  # and per calibrated depth (§25)
+        sigma_rows = ", ".join(f"[{c}, {s:.3e}]" for c, s in lens.table_sigma_v_at)
+        f_number += f"table_sigma_v_at = [{sigma_rows}]\n"
     comments = "".join(f"# {line}\n" for line in notes or [])
     response = _response_toml(lens.vertex_response) if lens.vertex_response is not None else ""
     return (

@@ -189,6 +189,35 @@ def check_table(table: TableFit, rig: FocusOptics) -> TableCheck:
     )
 
 
+def table_sigma_per_depth(table: TableFit, check: TableCheck) -> tuple[tuple[int, float], ...]:
+    """The table's own standard error of v (mm) at each calibrated depth, as (counts where the
+    closed loop reads it, σ) rows for the lens file (``Lens.table_sigma_v_at``).
+
+    The one-number formula of :attr:`dffd.calibrate_fit.ModelFit.table_sigma_v_um` applied at
+    each depth: σ_v² = max(loo² − res², 0)/2, with the depth's leave-one-depth-out error and the
+    mean square of the model's residuals at its points (a rejected point's as 0). Nothing is
+    chosen; at a depth the model misses (a near-end ripple, an outlier sweep) the term is what
+    the data say there, not a whole-table average that is 3x too wide at 3-7 m and too narrow
+    at 1.5-2 m (docs/estimation.md §25). Depths without a fitted point are left out."""
+    if table.fit is None:
+        return ()
+    fit = table.fit
+    fitted = table.model_points
+    rows: dict[int, float] = {}
+    for p, d in zip(table.points, check.depths, strict=True):
+        mine = [
+            fit.residual_v_um[i] if fit.used[i] else 0.0
+            for i, q in enumerate(fitted)
+            if q.placed_m == p.placed_m
+        ]
+        if not mine or not math.isfinite(d.loo_v_um):
+            continue
+        res2 = float(np.mean(np.square(mine)))
+        sigma_um = math.sqrt(max(d.loo_v_um**2 - res2, 0.0) / 2.0)
+        rows[round(p.at)] = sigma_um / 1000.0
+    return tuple(sorted(rows.items()))
+
+
 # -- private helpers --------------------------------------------------------------------------
 def _sigmas(points: list[DepthPoint]) -> FloatArray:
     """The points' σ in counts (a point without one: the median of the others)."""

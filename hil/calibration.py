@@ -42,8 +42,9 @@ from hil.simbuild import sim_camera_config, truth_lens_table
 logger = logging.getLogger(__name__)
 
 # Bump when the procedure changes what it writes: cached tables of another version are refitted.
-# 8: the closed loop's bracket ends; 9: the axis switch (estimation §16); 10: the vertex response
-PROCEDURE_VERSION = 10
+# 8: the closed loop's bracket ends; 9: the axis switch (estimation §16); 10: the vertex response;
+# 11: the table's σ per calibrated depth (estimation §25)
+PROCEDURE_VERSION = 11
 # Depths (m) at which the calibrated table is scored against the true focus curve.
 SCORE_DEPTHS_M = tuple(float(z) for z in np.geomspace(1.5, 12.0, 25))
 

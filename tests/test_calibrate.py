@@ -120,6 +120,10 @@ def test_sim_runs_with_its_own_defaults(
     assert lens.f_number == pytest.approx(2.9)  # the rig's, for the estimator's burst plan
     # the table states its own standard error, below the fit's residual (p/n of its variance)
     assert 0 < lens.table_sigma_v_mm < 2e-3
+    # and per calibrated depth (each fitted depth's own leave-one-out), read back from the file
+    assert len(lens.table_sigma_v_at) >= 10
+    assert all(s >= 0 for _, s in lens.table_sigma_v_at)
+    assert any(s > 0 for _, s in lens.table_sigma_v_at)
     # a smooth model tabulated densely over the calibrated range, within 1 % of the truth
     assert len(lens.focus_counts) > 50
     for z in (1.5, 3.0, 7.0, 12.0):

@@ -9,7 +9,7 @@ import pytest
 
 from dffd import calibrate_fit
 from dffd.calibrate import DEFAULT_DEPTHS_M
-from dffd.calibrate_check import SWEEPS_DISAGREE_CHI2, check_table
+from dffd.calibrate_check import SWEEPS_DISAGREE_CHI2, check_table, table_sigma_per_depth
 from dffd.calibrate_fit import AXIS_MISFIT_SIGMA, DepthPoint, TableFit, fit_table, fit_vertex
 from dffd.core.focus import fit_burst, plan_burst
 from dffd.core.lens import MM_PER_M, Lens
@@ -165,6 +165,30 @@ def test_the_table_sigma_covers_its_error() -> None:
     rms = float(np.sqrt(np.mean(np.square(ratios))))
     assert 0.5 < rms < 2.0, rms
     assert max(abs(r) for r in ratios) < 4.0
+
+
+def test_the_table_sigma_per_depth_is_largest_where_the_others_predict_a_depth_worst() -> None:
+    """The lens file's per-depth table σ (σ_v² = max(loo² − res², 0)/2 at each depth): one row
+    per fitted depth at the counts it is read at, and a sweep 1.5 µm of v off at 10 m (the
+    others predict it badly) gets the largest σ, several times the others' — the one number for
+    the whole table would spread it over every depth."""
+    rng = np.random.default_rng(1)
+    points = [_point(z, rng) for z in DEPTHS_M]
+    bad = DEPTHS_M.index(10.0)
+    points[bad] = _point(10.0, rng, off_um=1.5)
+    table = fit_table("disturbed", _Optics(), points, F_NUMBER)
+    check = check_table(table, _Optics())
+    rows = dict(table_sigma_per_depth(table, check))
+    fitted = {round(p.at): p.z_m for p, d in zip(table.points, check.depths, strict=True)
+              if math.isfinite(d.loo_v_um)}  # fmt: skip
+    assert set(rows) == set(fitted)
+    assert all(s >= 0 for s in rows.values())
+    at_bad = next(c for c, z in fitted.items() if z == 10.0)
+    others = [s for c, s in rows.items() if c != at_bad]
+    assert rows[at_bad] == max(rows.values())
+    assert rows[at_bad] > 3 * float(np.median(others))
+    # the one number (the whole table's) sits between them
+    assert float(np.median(others)) < table.lens.table_sigma_v_mm < rows[at_bad]
 
 
 def _rippled(amplitude: float, cycles: int = 2) -> Lens:

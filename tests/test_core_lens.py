@@ -45,6 +45,27 @@ def test_round_trips_and_thin_lens() -> None:
     assert lens.table_sigma_v_mm == 0.0  # a table of unknown error
     stated = Lens.from_meta(lens.to_meta() | {"table_sigma_v_mm": 3e-4})
     assert Lens.from_meta(stated.to_meta()).table_sigma_v_mm == 3e-4
+    # a lens file with the one number only (written before the per-depth rows): that number
+    # at every v
+    assert stated.table_sigma_v_mm_at(lens.v_from_depth(3.0)) == 3e-4
+
+
+def test_the_table_sigma_per_depth_is_interpolated_and_held_beyond() -> None:
+    """Rows of (counts, σ of v) at calibrated depths: interpolated in v between them, the end
+    rows' σ beyond them, the one number not used; they round-trip through meta and TOML."""
+    lens = Lens.from_toml(lens_table("sim-evi-d100"))
+    c2, c5 = round(lens.counts_for_depth(2.0)), round(lens.counts_for_depth(5.0))
+    rows = ((min(c2, c5), 1e-4), (max(c2, c5), 3e-4))
+    stated = Lens.from_meta(lens.to_meta() | {"table_sigma_v_mm": 9e-4, "table_sigma_v_at": rows})
+    v2, v5 = stated.v_from_counts(c2), stated.v_from_counts(c5)
+    s2, s5 = stated.table_sigma_v_mm_at(v2), stated.table_sigma_v_mm_at(v5)
+    assert {round(s2, 10), round(s5, 10)} == {1e-4, 3e-4}
+    mid = stated.table_sigma_v_mm_at(0.5 * (v2 + v5))
+    assert mid == pytest.approx(2e-4)
+    assert stated.table_sigma_v_mm_at(stated.v_from_depth(1.2)) == pytest.approx(s2)
+    assert stated.table_sigma_v_mm_at(stated.v_from_depth(20.0)) == pytest.approx(s5)
+    again = Lens.from_meta(stated.to_meta())
+    assert again.table_sigma_v_at == stated.table_sigma_v_at
 
 
 def test_the_vertex_response_round_trips_and_old_files_have_none(tmp_path: Path) -> None:
@@ -85,6 +106,9 @@ def test_the_vertex_response_round_trips_and_old_files_have_none(tmp_path: Path)
         ({"vertex_response": RESPONSE | {"fitted_h": [-0.9, 0.1, 0.0]}}, "strictly increasing"),
         ({"vertex_response": RESPONSE | {"true_h": [-1.0, 0.0]}}, "same length"),
         ({"vertex_response": RESPONSE | {"half_width_rel": 0.0}}, "half_width_rel"),
+        ({"table_sigma_v_at": [[5000, -1e-4]]}, "table_sigma_v_at"),
+        ({"table_sigma_v_at": [[5000]]}, r"table_sigma_v_at\[0\]"),
+        ({"table_sigma_v_at": [[99999, 1e-4]]}, "table_sigma_v_at"),
     ],
 )
 def test_validation_names_the_field(change: dict[str, object], field: str) -> None:

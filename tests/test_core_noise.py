@@ -297,6 +297,37 @@ def test_published_sigma_carries_the_lens_tables_own_error() -> None:
         assert s1 == pytest.approx(math.hypot(s0, table), rel=1e-9), name
 
 
+def test_published_sigma_reads_the_tables_sigma_at_its_depth() -> None:
+    """A table with a σ per calibrated depth (``table_sigma_v_at``): the published σ adds the
+    table's σ interpolated at the estimate's own depth, not the one number."""
+    base = synthetic_lens()
+    rows = tuple(
+        sorted((round(base.counts_for_depth(z)), s) for z, s in ((2.0, 1e-4), (8.0, 5e-4)))
+    )
+    stated = dataclasses.replace(base, table_sigma_v_mm=9e-4, table_sigma_v_at=rows)
+    bank = EstimatorBank(pipeline_config(DffdConfig()), stated)
+    plain = EstimatorBank(pipeline_config(DffdConfig()), base)
+    v5 = base.v_from_depth(5.0)
+    m = Measurement(
+        burst_id=1, t=0.0, frame_indices=(0, 1, 2), focus_counts=(1, 2, 3),
+        v_mm=(v5 - 0.05, v5, v5 + 0.05), costs=(2.0, 1.0, 2.0), cost_sigmas=(0.01,) * 3,
+        alpha=1.0, v_hat_mm=v5, residual=0.0, accepted=True, reason="ok", z_m=5.0, sigma_m=0.02,
+    )  # fmt: skip
+    for b in (bank, plain):
+        b.correct(m, 0.01, 0.01, 0.0)
+        b.predict(1 / 30, 0.01, 0.01, 0.0, 0.0)
+    for z in (2.0, 5.0, 8.0):
+        depth: dict[str, float | None] = {"measured": z}
+        s0, s1 = plain.sigmas(depth)["measured"], bank.sigmas(depth)["measured"]
+        assert s0 is not None
+        assert s1 is not None
+        v = base.v_from_depth(z)
+        sv = stated.table_sigma_v_mm_at(v)
+        assert 1e-4 - 1e-12 <= sv <= 5e-4 + 1e-12
+        assert s1 == pytest.approx(math.hypot(s0, abs(base.dz_dv(v)) * sv), rel=1e-9)
+    assert stated.table_sigma_v_mm_at(base.v_from_depth(2.0)) == pytest.approx(1e-4, rel=1e-3)
+
+
 ADAPT = NoiseAdaptConfig()
 
 

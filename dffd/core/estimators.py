@@ -109,13 +109,15 @@ class EstimatorBank:
         """The published σ of every estimator with a depth in ``depth``: its propagated σ and
         the lens table's own error at that depth (a bias all its measurements share)."""
         out = self.unc.sigmas(depth)
-        sv = self.lens.table_sigma_v_mm
-        if sv > 0:
-            lens = self.lens
+        lens = self.lens
+        if lens.table_sigma_v_mm > 0 or lens.table_sigma_v_at:
             for name, sigma in out.items():
                 z = depth.get(name)
                 if sigma is not None and z is not None and z > 0:
-                    out[name] = math.hypot(sigma, abs(lens.dz_dv(lens.v_from_depth(z))) * sv)
+                    v = lens.v_from_depth(z)
+                    # the table's σ where this depth is (per calibrated depth, or one number)
+                    sv = lens.table_sigma_v_mm_at(v)
+                    out[name] = math.hypot(sigma, abs(lens.dz_dv(v)) * sv)
         return out
 
     def predict(self, dt: float, s: float, s_prev: float, sdot: float, rho: float) -> None:

@@ -48,6 +48,10 @@ class Lens:
     # The three-point vertex's response to the true offset, measured by `dffd calibrate` on its
     # sweeps (None: not measured, no correction; docs/estimation.md §21).
     vertex_response: VertexResponse | None = None
+    # The same per calibrated depth: (counts, σ of v in mm) rows, the calibration's check at
+    # each depth (`dffd calibrate`, `TableCheck`); interpolated between them, held beyond.
+    # Empty: ``table_sigma_v_mm`` everywhere (lens files written before it).
+    table_sigma_v_at: tuple[tuple[int, float], ...] = ()
     # The PCHIP interpolants (SciPy's ``PchipInterpolator(..., extrapolate=False)``, built and
     # evaluated here with its arithmetic: importing scipy.interpolate cost a start ~0.4 s of
     # CPU, docs/design.md §5.3), evaluated one scalar at a time (the core converts a few values
@@ -56,6 +60,8 @@ class Lens:
     _counts_at: _ScalarPchip = field(init=False, repr=False)
     # (min, max) of focus_v_mm, computed once: v_range_mm runs several times a frame.
     _v_range: tuple[float, float] = field(init=False, repr=False)
+    # table_sigma_v_at as (v_mm, σ) sorted by v, for table_sigma_v_mm_at
+    _sigma_v: tuple[tuple[float, ...], tuple[float, ...]] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -65,6 +71,8 @@ class Lens:
         object.__setattr__(self, "_v_at", _ScalarPchip(counts, v))
         object.__setattr__(self, "_counts_at", _ScalarPchip(v[order], counts[order]))
         object.__setattr__(self, "_v_range", (min(self.focus_v_mm), max(self.focus_v_mm)))
+        rows = sorted((self._v_at(c), s) for c, s in self.table_sigma_v_at)
+        object.__setattr__(self, "_sigma_v", (tuple(r[0] for r in rows), tuple(r[1] for r in rows)))
 
     # -- construction -----------------------------------------------------------------------
     @classmethod
@@ -107,6 +115,19 @@ class Lens:
         zoom = meta.get("zoom_counts")
         table_sigma = meta.get("table_sigma_v_mm")
         response = meta.get("vertex_response")
+        sigma_rows = meta.get("table_sigma_v_at", ())
+        if not isinstance(sigma_rows, Sequence) or isinstance(sigma_rows, str):
+            raise LensError(f"{source}: table_sigma_v_at must be a list of [counts, sigma_v_mm]")
+        at: list[tuple[int, float]] = []
+        for i, row in enumerate(sigma_rows):
+            if not isinstance(row, Sequence) or isinstance(row, str) or len(row) != 2:
+                raise LensError(f"{source}: table_sigma_v_at[{i}] must be a [counts, sigma_v_mm]")
+            at.append(
+                (
+                    _integer(row[0], f"table_sigma_v_at[{i}] counts", source),
+                    _number(row[1], f"table_sigma_v_at[{i}] sigma_v_mm", source),
+                )
+            )
         return cls(
             name=str(meta.get("name", "unnamed")),
             focal_length_mm=_number(meta.get("focal_length_mm"), "focal_length_mm", source),
@@ -121,6 +142,7 @@ class Lens:
             vertex_response=(
                 None if response is None else VertexResponse.from_meta(response, source)
             ),
+            table_sigma_v_at=tuple(at),
         )
 
     def to_meta(self) -> dict[str, Any]:
@@ -141,7 +163,24 @@ class Lens:
             meta["table_sigma_v_mm"] = self.table_sigma_v_mm
         if self.vertex_response is not None:
             meta["vertex_response"] = self.vertex_response.to_meta()
+        if self.table_sigma_v_at:
+            meta["table_sigma_v_at"] = [[c, s] for c, s in self.table_sigma_v_at]
         return meta
+
+    def table_sigma_v_mm_at(self, v_mm: float) -> float:
+        """The table's own standard error of v (mm) at ``v_mm``: the per-depth rows
+        interpolated (held beyond the calibrated depths), else the one ``table_sigma_v_mm``."""
+        vs, sigmas = self._sigma_v
+        if not vs:
+            return self.table_sigma_v_mm
+        # bisect, not np.interp: this runs for every estimator on every frame
+        i = bisect.bisect_left(vs, v_mm)
+        if i == 0:
+            return sigmas[0]
+        if i == len(vs):
+            return sigmas[-1]
+        w = (v_mm - vs[i - 1]) / (vs[i] - vs[i - 1])
+        return sigmas[i - 1] + w * (sigmas[i] - sigmas[i - 1])
 
     # -- derived quantities -----------------------------------------------------------------
     @property
@@ -440,6 +479,11 @@ def _validate(lens: Lens) -> None:
         raise LensError(f"{src}: pixel_pitch_mm must be > 0 (got {lens.pixel_pitch_mm})")
     if not lens.table_sigma_v_mm >= 0:
         raise LensError(f"{src}: table_sigma_v_mm must be >= 0 (got {lens.table_sigma_v_mm})")
+    for c, s in lens.table_sigma_v_at:
+        if not s >= 0:
+            raise LensError(f"{src}: table_sigma_v_at's sigma_v_mm must be >= 0 (got {s})")
+        if not min(lens.focus_counts) <= c <= max(lens.focus_counts):
+            raise LensError(f"{src}: table_sigma_v_at's counts {c} are outside the focus_table")
     if lens.f_number is not None and lens.f_number <= 0:
         raise LensError(f"{src}: f_number must be > 0 (got {lens.f_number})")
     if len(lens.focus_counts) != len(lens.focus_v_mm) or len(lens.focus_counts) < 2:
