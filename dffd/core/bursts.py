@@ -122,6 +122,8 @@ class BurstAssembler:
         self._id: int | None = None
         self._last_end: BurstSample | None = None  # the last rolling end (the next one's slot 0)
         self._last_mid: BurstSample | None = None  # the last tracking frame's cost sample
+        # the last tracking frame while its cost is not taken yet (see set_middle)
+        self._mid_frame: tuple[int, float, int, BoundaryObservation] | None = None
         # the peak gradient's bias against the edge moment (measure "debiased_peak"); a property
         # of the lens and the measures, kept across targets
         self.peak_bias = PeakBias()
@@ -138,6 +140,7 @@ class BurstAssembler:
         self.discard()
         self._last_end = None
         self._last_mid = None
+        self._mid_frame = None
 
     def discard(self) -> None:
         """Drop the pending burst."""
@@ -158,8 +161,13 @@ class BurstAssembler:
             self._samples.append(sample)
 
     def set_middle(self, index: int, t: float, counts: int, obs: BoundaryObservation) -> None:
-        """A tracking frame: at the best focus, the middle of the next rolling burst."""
-        self._last_mid = self.cost_sample(index, t, counts, obs)
+        """A tracking frame: at the best focus, the middle of the next rolling burst.
+
+        Its cost is taken only when a rolling end closes a burst on it (:meth:`_middle`): on the
+        bench's paper-circle run half of the tracking frames are followed by another before that.
+        """
+        self._mid_frame = (index, t, counts, obs)
+        self._last_mid = None
 
     def cost_sample(
         self, index: int, t: float, counts: int, obs: BoundaryObservation
@@ -320,10 +328,11 @@ class BurstAssembler:
     def _add_rolling_end(self, bid: int, sample: BurstSample | None) -> None:
         """A last slot with none before it: a rolling end; close a burst with the previous end
         and the tracking frame between them (see the module docstring)."""
-        prev, mid = self._last_end, self._last_mid
+        prev = self._last_end
         self._last_end = sample
         if sample is None:
             return
+        mid = None if prev is None else self._middle()
         if (
             prev is None
             or mid is None
@@ -336,6 +345,14 @@ class BurstAssembler:
             return
         self._samples = [prev, mid, sample]
         self._id = bid
+
+    def _middle(self) -> BurstSample | None:
+        """The last tracking frame's cost sample (taken now if it was not yet)."""
+        pending = self._mid_frame
+        if pending is not None:
+            self._mid_frame = None
+            self._last_mid = self.cost_sample(*pending)
+        return self._last_mid
 
     def _reject(self, bid: int, reason: str) -> None:
         self.rejections[reason] += 1
