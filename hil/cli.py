@@ -51,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--record",
         action="store_true",
-        help="also write a recording (docs/design.md §8): one PNG per frame, ~265 MB per minute "
+        help="also write a recording (docs/design.md §8): one PNG per frame, ~555 MB per minute "
         "of scenario at 640x480 and 30 fps; the expected size and the free space are printed "
         "first, with a warning if the disk would fill within the hour",
     )

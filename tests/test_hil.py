@@ -303,14 +303,14 @@ def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> N
 def test_recording_plan_says_the_size_and_warns_before_the_disk_fills() -> None:
     from hil.runner import recording_plan
 
-    # 640x480 gray at 30 fps: 553 MB/min raw, ~276 MB/min as PNG (the measured 0.46-0.48).
+    # 640x480 gray at 30 fps: 553 MB/min raw, and as much as stored PNG (measured 555 MB/min).
     plan, warning = recording_plan((640, 480), 30.0, 120.0, free_bytes=100 * 10**9)
-    assert "~276 MB per minute of scenario (553 MB/min uncompressed)" in plan
-    assert "this run ~553 MB" in plan
+    assert "~553 MB per minute of scenario (553 MB/min uncompressed)" in plan
+    assert "this run ~1106 MB" in plan
     assert warning is None
     _, warning = recording_plan((640, 480), 30.0, 120.0, free_bytes=5 * 10**9)
     assert warning is not None
-    assert "last only ~18 min" in warning
+    assert "last only ~9 min" in warning
     _, warning = recording_plan((640, 480), 30.0, 120.0, free_bytes=300 * 10**6)
     assert warning is not None
     assert "does not fit" in warning
