@@ -115,9 +115,9 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument(
         "--depths", default=None, metavar="Z1,Z2,…",
-        help="known target depths in metres (default: the standard set 1,1.5,2,3,4.5,7,10,20; "
-        "with --sim each depth moved out to where the simulated target fits the tracker: "
-        "1.2 m to 20 m)",
+        help="known target depths in metres (default: 23 depths from 1 to 20 m, every "
+        "0.25-0.75 m over 2-10 m; with --sim each depth moved out to where the simulated "
+        "target fits the tracker: 1.2 m to 20 m)",
     )  # fmt: skip
     parser.add_argument("--out", type=Path, metavar="FILE", help="write the lens TOML here")
     parser.add_argument("--name", default="calibrated", help="lens name in the TOML file")
@@ -135,7 +135,7 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
         "Fit the focus counts <-> v table from focus sweeps with the target at known depths and "
         "measure the capture latency. --sim: the simulated camera. --config FILE: the real "
         "camera (serial port + video device of FILE); you are prompted to place the target at "
-        "each depth. Same procedure either way (docs/calibration.md)."
+        "each depth. Same procedure either way (docs/design.md §3.1)."
     )
     parser.epilog = "Exit codes: 0 written, 1 calibration failed, 2 usage/config error."
 
