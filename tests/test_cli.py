@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
+import logging
 import shutil
 import subprocess
 import sys
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from dffd import exitcodes
-from dffd.cli import SUBCOMMANDS, build_parser
+from dffd.cli import SUBCOMMANDS, build_parser, service_log_level, verbosity_level
 from dffd.cli.arguments import REPLAY_ESTIMATORS
 
 KERNELS_SOURCE = Path(__file__).resolve().parent.parent / "dffd/core/kernels.py"
@@ -53,6 +54,21 @@ def test_every_subcommand_has_arguments_and_an_implementation() -> None:
         assert parser.prog == "dffd"
         module, _, function = sub.implementation.partition(":")
         assert callable(getattr(importlib.import_module(module), function)), name
+
+
+def test_the_command_lines_verbosity_wins_over_the_configured_level_when_it_asks_for_more() -> None:
+    assert [verbosity_level(n) for n in range(4)] == [
+        logging.WARNING, logging.INFO, logging.DEBUG, logging.DEBUG,
+    ]  # fmt: skip
+    # no -v: [log] level alone
+    assert service_log_level("INFO", 0) == logging.INFO
+    assert service_log_level("ERROR", 0) == logging.ERROR
+    # -vv: DEBUG, whatever [log] level says (the timeline of docs/design.md §5.3)
+    assert service_log_level("INFO", 2) == logging.DEBUG
+    assert service_log_level("ERROR", 2) == logging.DEBUG
+    # -v: INFO over a quieter level, and never quieter than the configured one
+    assert service_log_level("WARNING", 1) == logging.INFO
+    assert service_log_level("DEBUG", 1) == logging.DEBUG
 
 
 def test_driver_tools_use_the_same_exit_codes() -> None:

@@ -19,7 +19,16 @@ from typing import cast
 from dffd import __version__
 from dffd.exitcodes import EXIT_CODES_HELP, EXIT_INTERRUPTED, EXIT_USAGE
 
-__all__ = ["NEEDS_CORE", "SUBCOMMANDS", "Subcommand", "build_parser", "entry_point", "main"]
+__all__ = [
+    "NEEDS_CORE",
+    "SUBCOMMANDS",
+    "Subcommand",
+    "build_parser",
+    "entry_point",
+    "main",
+    "service_log_level",
+    "verbosity_level",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +74,8 @@ SUBCOMMANDS: dict[str, Subcommand] = {
 }
 
 
+# The root logger's level for no -v, -v and -vv (more v's: still DEBUG).
+_VERBOSITY_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
 # Subcommands that load the estimation core (and with it the tracker's numba kernels).
 NEEDS_CORE = frozenset({"run", "replay", "calibrate"})
 
@@ -94,8 +105,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     selected = next((arg for arg in argv if arg in SUBCOMMANDS), None)
     args = build_parser(selected).parse_args(argv)
-    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=verbosity_level(args.verbose),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     warm = None
     if args.command == "run":
         from dffd.config import check_run_config
@@ -130,6 +143,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if warm is not None:
             warm.stop()
+
+
+def verbosity_level(verbose: int) -> int:
+    """The logging level ``-v`` given ``verbose`` times asks for: WARNING, INFO, DEBUG (-vv)."""
+    return _VERBOSITY_LEVELS[min(verbose, len(_VERBOSITY_LEVELS) - 1)]
+
+
+def service_log_level(configured: str, verbose: int) -> int:
+    """The level of dffd's own loggers: ``[log] level``, or the command line's when ``-v`` is
+    given and asks for more (the more verbose of the two)."""
+    level = logging.getLevelNamesMapping()[configured]
+    return min(level, verbosity_level(verbose)) if verbose else level
 
 
 def entry_point() -> None:

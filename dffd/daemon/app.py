@@ -64,6 +64,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from dffd.cli import service_log_level
 from dffd.config import DffdConfig, check_run_config
 from dffd.core.lens import Lens, LensError
 from dffd.daemon import allocator
@@ -142,7 +143,9 @@ def run(args: argparse.Namespace) -> int:
             print(checked, file=sys.stderr)
             return EXIT_USAGE
         config = checked
-    logging.getLogger("dffd").setLevel(config.log.level)
+    # [log] level sets dffd's own loggers, unless the command line's -v/-vv asks for more
+    verbose = getattr(args, "verbose", 0)  # dffd's top-level -v (absent: not from dffd.cli)
+    logging.getLogger("dffd").setLevel(service_log_level(config.log.level, verbose))
     live = not args.no_console and sys.stdout.isatty()
     if not live and not logging.getLogger().isEnabledFor(logging.INFO):
         # Without a TTY the status lines are the console; make sure they are visible.
