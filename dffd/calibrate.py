@@ -41,8 +41,11 @@ Lab procedure (real camera):
 2. ``dffd calibrate --config /etc/dffd/dffd.toml --out /etc/dffd/lenses/NEW.toml`` (the
    default depths: :data:`DEFAULT_DEPTHS_M`, denser where the table curves and at long range,
    where a micrometre of v is a decimetre of depth) — the config names ``camera.port``,
-   ``capture.device`` (and its size/fps/fourcc) and ``lens.file`` (its focal length, pixel
-   pitch and f-number are reused: f is fixed at a fixed zoom).
+   ``capture.device`` (and its size/fps/fourcc) and ``lens.file``: when that file exists its
+   focal length, pixel pitch and f-number are reused (f is fixed at a fixed zoom); when it does
+   not (the table this calibration writes), those of the packaged default lens
+   (:data:`dffd.resources.DEFAULT_LENS`), with a note to check them. ``--out``'s directory must
+   exist and be writable: it is checked before the first depth.
 3. At each prompt place the target at that depth along the optical axis (measure from the
    front principal plane; ±5 mm matters at 1 m) and press Enter. About a minute per depth. A
    depth the other depths predict badly (beyond ``REPEAT_SIGMA`` σ of the table fitted without
@@ -57,10 +60,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import dataclasses
 import logging
 import math
+import os
+import stat
 import sys
+import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -81,12 +88,15 @@ from dffd.calibrate_fit import (
     fit_vertex,
 )
 from dffd.calibrate_vertex import table_response
-from dffd.config import ConfigError, DffdConfig, load_config
+from dffd.cli.loading import say_if_compiling
+from dffd.config import ConfigError, DffdConfig, load_config, missing_devices
+from dffd.core import kernel_dispatch
 from dffd.core.contour import ContourTracker, TrackerConfig, find_target
 from dffd.core.focus import DEFAULT_FOCUS_MEASURE, PlanConfig, frame_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError, VertexResponse
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.literals import FocusMeasure
+from dffd.resources import DEFAULT_LENS, lens_table
 from drivers.sim.resources import reference_camera_file
 
 _LOGGER = logging.getLogger(__name__)
@@ -210,6 +220,12 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
+    # Everything that can be checked is, before the procedure (minutes; ~1 a depth in the lab)
+    # and before the kernels load (a first start compiles them: 20-40 s).
+    unwritable = output_problem(args.out) if args.out is not None else None
+    if unwritable is not None:
+        print(f"dffd calibrate: {unwritable}", file=sys.stderr)
+        return EXIT_USAGE
     if args.sim:
         sim_rig = SimRig(args.sim_config or reference_camera_file())
         if args.depths is None:
@@ -223,6 +239,7 @@ def run(args: argparse.Namespace) -> int:
             return EXIT_USAGE
         # the measure the daemon would use with its default configuration
         measure = DffdConfig().estimators.focus_measure
+        _load_kernels()
         return asyncio.run(_calibrate_and_report(sim_rig, depths, args, measure))
     try:
         config = load_config(args.config)
@@ -230,7 +247,65 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, CalibrationError) as exc:
         print(f"dffd calibrate: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    absent = missing_devices(config)  # as dffd run refuses them (lens.file is written here)
+    if absent:
+        print("dffd calibrate: " + "; ".join(absent), file=sys.stderr)
+        return EXIT_USAGE
+    if rig.optics_note is not None:
+        print(f"dffd calibrate: note: {rig.optics_note}", file=sys.stderr)
+    _load_kernels()
     return asyncio.run(_lab(rig, depths, args))
+
+
+def output_problem(path: Path) -> str | None:
+    """Why the lens table could not be written to ``path`` (``--out``), or None: checked before
+    the procedure, which takes minutes."""
+    target = path.resolve()  # a symlink's table is written where it points
+    directory = target.parent
+    if target.is_dir():
+        return (
+            f"--out {path} is a directory: give the lens file's path, e.g. "
+            f"--out {path / 'lens.toml'}"
+        )
+    if not directory.is_dir():
+        what = "is not a directory" if directory.exists() else "does not exist"
+        return (
+            f"--out {path}: {directory} {what} (calibrate does not create it): create the "
+            f"directory first (mkdir -p {directory}) or give another --out"
+        )
+    try:
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as exc:
+        return (
+            f"--out {path}: cannot write in {directory} ({exc.strerror or exc}): run as a user "
+            "who may write there, or give another --out"
+        )
+    return None
+
+
+def write_lens_file(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all: into a temporary file in the same
+    directory, renamed over ``path`` (an existing file keeps its mode); OSError if it fails."""
+    target = path.resolve()  # replace the file a symlink points to, not the symlink
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    created = False
+    try:
+        # 0o666 less the umask, as a plain write would create it
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        created = True
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        with contextlib.suppress(FileNotFoundError):
+            tmp.chmod(stat.S_IMODE(target.stat().st_mode))
+        tmp.replace(target)
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        raise
 
 
 async def calibrate(
@@ -561,13 +636,14 @@ class LabRig:
                 "capture.source = 'v4l2' with capture.device (or 'stream' with capture.url); "
                 "use --sim for the simulator"
             )
+        # lens.file's optics are reused (f is fixed at a fixed zoom); calibrate writes that file,
+        # so it need not exist yet: the packaged default lens's optics then, with a note.
+        self.optics_note: str | None = None
         try:
             lens = Lens.from_toml(config.lens.file)
         except LensError as exc:
-            raise CalibrationError(
-                f"lens.file: {exc}; the lab procedure reuses its focal_length_mm and "
-                "pixel_pitch_mm (f is fixed at a fixed zoom): start from the datasheet values"
-            ) from exc
+            lens = Lens.from_toml(lens_table(DEFAULT_LENS))
+            self.optics_note = _default_optics_note(config, lens, exc)
         self.config = config
         self.profile = profile_for(config.camera.model)
         self.focal_length_mm = lens.focal_length_mm
@@ -677,11 +753,20 @@ async def _calibrate_and_report(
     print(f"capture latency: {latency} frame(s) in flight")
     notes = [f"Focus measure: {measure}.", *lines]
     text = lens_toml(result.table.lens, rig.zoom_counts, latency, notes)
-    if args.out is not None:
-        args.out.write_text(text, encoding="utf-8")
-        print(f"lens table written to {args.out}")
-    else:
+    if args.out is None:
         print(text)
+        return EXIT_OK
+    try:
+        write_lens_file(args.out, text)
+    except OSError as exc:
+        print(text)  # the calibration is not lost
+        print(
+            f"dffd calibrate: cannot write the lens table to --out {args.out}: {exc}; it is "
+            "printed on stdout above: save it as a lens file yourself (from [lens] on)",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
+    print(f"lens table written to {args.out}")
     return EXIT_OK
 
 
@@ -701,6 +786,33 @@ async def _lab(rig: LabRig, depths: list[float], args: argparse.Namespace) -> in
             file=sys.stderr,
         )
         return EXIT_FAILURE
+
+
+def _load_kernels() -> None:
+    """Load the tracker's compiled kernels (compile them on a first start, saying so): the
+    procedure's results must not depend on timing, so no NumPy twins meanwhile."""
+    say_if_compiling("calibrate")
+    kernel_dispatch.use_compiled()
+
+
+def _default_optics_note(config: DffdConfig, lens: Lens, exc: LensError) -> str:
+    """What the lab procedure starts from when ``lens.file`` cannot be read."""
+    file = config.lens.file
+    why = (
+        f"lens.file {file} does not exist yet (this calibration writes its table)"
+        if not file.exists()
+        else f"lens.file: {exc}"
+    )
+    optics = f"focal_length_mm {lens.focal_length_mm:g}, pixel_pitch_mm {lens.pixel_pitch_mm:g}"
+    if lens.f_number is not None:
+        optics += f", f_number {lens.f_number:g}"
+    if config.lens.zoom_counts is None and lens.zoom_counts is not None:
+        optics += f", zoom_counts {lens.zoom_counts}"
+    return (
+        f"{why}; using the optics of the packaged lens {lens.name}: {optics}. The table "
+        "written carries them: check them against your camera (f at the zoom used) and grabber; "
+        "to start from others, name a lens file with them for this run (DFFD_LENS__FILE=FILE)"
+    )
 
 
 def _blocks(image: Image) -> npt.NDArray[np.float64]:
@@ -801,7 +913,9 @@ __all__ = [
     "calibrate_table",
     "lens_toml",
     "measure_latency",
+    "output_problem",
     "run",
     "sharpest",
     "vertex",
+    "write_lens_file",
 ]

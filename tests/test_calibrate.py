@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from dffd import calibrate as calibrate_module
 from dffd.calibrate import (
     LabRig,
     SimRig,
@@ -16,15 +23,22 @@ from dffd.calibrate import (
     run,
     sharpest,
     vertex,
+    write_lens_file,
 )
 from dffd.calibrate_fit import CalibrationError, DepthPoint, lens_from_points
 from dffd.cli.arguments import configure_calibrate
-from dffd.config import load_config
+from dffd.config import check_run_config, load_config
 from dffd.core.lens import Lens
+from dffd.exitcodes import EXIT_FAILURE, EXIT_USAGE
 from dffd.resources import lens_table
 from drivers.sim.resources import reference_camera_file
 
+REPO = Path(__file__).resolve().parent.parent
+LAB_EXAMPLE = REPO / "config" / "lab-evi-d100.toml"
 TRUTH = Lens.from_toml(lens_table("sim-evi-d100"))
+# `dffd calibrate` refusing its arguments in a fresh interpreter: the start and the imports of
+# the core (no kernels), ~1-3 s on the 2-core machine under load.
+CLI_TIMEOUT_S = 60.0
 # Measured bias of the sweep on the reference simulator: the sharpest counts come out 15–80
 # counts on the far side of the true table (≤ 2% in depth at 10 m). 120 counts bounds it.
 COUNTS_TOL = 120
@@ -74,12 +88,20 @@ async def test_the_procedure_places_the_target_at_each_depth_in_order() -> None:
     assert latency == 1
 
 
-def test_cli_writes_a_loadable_lens_file(tmp_path: Path) -> None:
-    parser = argparse.ArgumentParser()
-    configure_calibrate(parser)
+def test_cli_writes_a_loadable_lens_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from dffd.cli import loading
+
+    monkeypatch.setattr(loading, "kernels_warm", lambda: False)  # as on a first start
+    parser = _parser()
     out = tmp_path / "lens.toml"
+    (tmp_path / "lens.toml").write_text("an older table\n", encoding="utf-8")
     args = parser.parse_args(["--sim", "--depths", "2,5,12", "--out", str(out)])
     assert run(args) == 0
+    # the inputs were good: it said it compiles the kernels, once
+    assert capsys.readouterr().err.count("compiling the tracker's kernels") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lens.toml"]  # no temporary file left
     lens = Lens.from_toml(out)
     assert len(lens.focus_counts) == 3
     assert lens.depth_from_v(lens.v_from_counts(TRUTH.counts_for_depth(5.0))) == pytest.approx(
@@ -200,3 +222,162 @@ def test_lab_mode_needs_a_visca_camera_and_a_video_device(
     rig = LabRig(load_config(lab))
     assert rig.focus_range == (0x1000, 0x8400)  # EVI-D100 profile
     assert rig.focal_length_mm == TRUTH.focal_length_mm  # reused from lens.file
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser()
+    configure_calibrate(parser)
+    return parser
+
+
+@pytest.mark.parametrize(
+    ("out", "expected"),
+    [
+        ("missing/dir/lens.toml", "does not exist (calibrate does not create it)"),
+        ("a-file/lens.toml", "is not a directory"),
+        ("", "is a directory: give the lens file's path"),
+    ],
+)
+def test_an_out_that_cannot_be_written_is_refused_before_the_procedure(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], out: str, expected: str
+) -> None:
+    (tmp_path / "a-file").write_text("", encoding="utf-8")
+    path = tmp_path / out
+    assert run(_parser().parse_args(["--sim", "--depths", "2,5,12", "--out", str(path)])) == 2
+    printed = capsys.readouterr()
+    assert printed.out == ""  # nothing ran: no depths, no table
+    assert f"dffd calibrate: --out {path}" in printed.err
+    assert expected in printed.err
+    if out.startswith("missing"):
+        assert f"mkdir -p {path.parent}" in printed.err  # and how to fix it
+
+
+# Three sweeps of ~80 frames (one frame a setting): a few seconds, several times that if shared.
+@pytest.mark.timeout(180)
+def test_a_table_that_cannot_be_written_at_the_end_is_printed_not_lost(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The directory checked at the start is gone when the table is written (a removed or
+    unmounted directory): exit 1, the reason, and the table on stdout, no traceback."""
+    monkeypatch.setattr("dffd.calibrate.FRAMES_PER_SETTING", 1)
+    procedure = calibrate_module.calibrate_table
+    directory = tmp_path / "lenses"
+    directory.mkdir()
+    out = directory / "lens.toml"
+
+    async def then_the_directory_goes(*args: Any, **kwargs: Any) -> Any:
+        result = await procedure(*args, **kwargs)
+        shutil.rmtree(directory)
+        return result
+
+    monkeypatch.setattr(calibrate_module, "calibrate_table", then_the_directory_goes)
+    assert (
+        run(_parser().parse_args(["--sim", "--depths", "2,5,12", "--out", str(out)]))
+        == EXIT_FAILURE
+    )
+    printed = capsys.readouterr()
+    assert f"dffd calibrate: cannot write the lens table to --out {out}: " in printed.err
+    assert "printed on stdout" in printed.err
+    assert "Traceback" not in printed.err
+    table = printed.out[printed.out.index("[lens]") :]
+    lens = Lens.from_meta(tomllib.loads(table)["lens"], source="stdout")
+    assert len(lens.focus_counts) == 3
+
+
+def test_the_lens_file_is_replaced_whole_or_not_at_all(tmp_path: Path) -> None:
+    out = tmp_path / "lens.toml"
+    out.write_text("old\n", encoding="utf-8")
+    out.chmod(0o640)
+    write_lens_file(out, "new\n")
+    assert out.read_text(encoding="utf-8") == "new\n"
+    assert out.stat().st_mode & 0o777 == 0o640  # an existing table's mode is kept
+    # through a symlink: the file it points to is replaced, the link stays
+    link = tmp_path / "current.toml"
+    link.symlink_to(out)
+    write_lens_file(link, "newer\n")
+    assert link.is_symlink()
+    assert out.read_text(encoding="utf-8") == "newer\n"
+    # a write that fails leaves nothing behind: no partial file, no temporary file
+    blocked = tmp_path / "blocked.toml"
+    (blocked / "inside").mkdir(parents=True)  # a non-empty directory: the rename fails
+    with pytest.raises(OSError, match=r"blocked\.toml"):
+        write_lens_file(blocked, "table\n")
+    with pytest.raises(FileNotFoundError):
+        write_lens_file(tmp_path / "gone" / "lens.toml", "table\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "blocked.toml",
+        "current.toml",
+        "lens.toml",
+    ]
+
+
+def test_the_lab_procedure_starts_without_the_lens_file_it_writes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The lab example's lens.file is the table calibrate writes: calibrate starts from the
+    packaged lens's optics with a note; `dffd run` still refuses the missing file."""
+    lens_file = tmp_path / "lenses" / "evi-d100-tele.toml"  # as /etc/dffd/lenses/… before it
+    monkeypatch.setenv("DFFD_LENS__FILE", str(lens_file))
+    config = load_config(LAB_EXAMPLE)
+    rig = LabRig(config)
+    assert rig.focal_length_mm == TRUTH.focal_length_mm  # the packaged sim-evi-d100's
+    assert rig.pixel_pitch_mm == TRUTH.pixel_pitch_mm
+    assert rig.f_number == TRUTH.f_number
+    assert rig.zoom_counts == 16384  # the example's [lens] zoom_counts
+    assert rig.optics_note is not None
+    assert f"lens.file {lens_file} does not exist yet" in rig.optics_note
+    assert "sim-evi-d100" in rig.optics_note
+    # through the command line: past the lens file, stopped at the devices absent here, at once
+    monkeypatch.setenv("DFFD_CAMERA__PORT", str(tmp_path / "no-visca"))
+    monkeypatch.setenv("DFFD_CAPTURE__DEVICE", str(tmp_path / "no-video"))
+    args = ["--config", str(LAB_EXAMPLE), "--out", str(lens_file)]
+    lens_file.parent.mkdir()
+    assert run(_parser().parse_args(args)) == EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "cannot read lens file" not in err
+    assert f"camera.port: {tmp_path / 'no-visca'} does not exist" in err
+    assert f"capture.device: {tmp_path / 'no-video'} does not exist" in err
+    # dffd run and check-config keep requiring it
+    refused = check_run_config(LAB_EXAMPLE)
+    assert isinstance(refused, str)
+    assert f"lens.file: {lens_file} does not exist" in refused
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["--config", "{bad}", "--out", "{tmp}/lens.toml"], "did you mean 'burst_every_n_frames'?"),
+        (["--sim", "--out", "{tmp}/missing/lens.toml"], "--out {tmp}/missing/lens.toml: "),
+        (["--config", "{lab}", "--out", "{tmp}/lens.toml"], "camera.port: {tmp}/no-visca"),
+    ],
+)
+def test_calibrate_checks_its_inputs_before_loading_the_kernels(
+    tmp_path: Path, argv: list[str], expected: str
+) -> None:
+    """A fresh install (empty numba cache): a bad config, --out or device is reported at once,
+    without compiling the tracker's kernels first (~30 s) or saying that it compiles them."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[scheduler]\nburst_every_n_frame = 2\n", encoding="utf-8")
+    names = {"bad": str(bad), "tmp": str(tmp_path), "lab": str(LAB_EXAMPLE)}
+    cache = tmp_path / "numba-cache"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DFFD_")}
+    env.update(
+        NUMBA_CACHE_DIR=str(cache),
+        PYTHONPATH=str(REPO),
+        DFFD_LENS__FILE=str(tmp_path / "lens.toml"),
+        DFFD_CAMERA__PORT=str(tmp_path / "no-visca"),
+        DFFD_CAPTURE__DEVICE=str(tmp_path / "no-video"),
+    )
+    probe = (
+        "import sys; from dffd import cli; "
+        f"rc = cli.main(['calibrate', *{[a.format(**names) for a in argv]!r}]); "
+        "print(rc, 'dffd.core.kernels' in sys.modules, 'numba' in sys.modules)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+        timeout=CLI_TIMEOUT_S, check=False,
+    )  # fmt: skip
+    assert done.stdout.split() == [str(EXIT_USAGE), "False", "False"], done.stderr
+    assert expected.format(**names) in done.stderr
+    assert "compil" not in done.stderr
+    assert not cache.exists() or not any(cache.rglob("*.nbi"))

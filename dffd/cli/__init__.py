@@ -20,7 +20,6 @@ from dffd import __version__
 from dffd.exitcodes import EXIT_CODES_HELP, EXIT_INTERRUPTED, EXIT_USAGE
 
 __all__ = [
-    "NEEDS_CORE",
     "SUBCOMMANDS",
     "Subcommand",
     "build_parser",
@@ -76,8 +75,6 @@ SUBCOMMANDS: dict[str, Subcommand] = {
 
 # The root logger's level for no -v, -v and -vv (more v's: still DEBUG).
 _VERBOSITY_LEVELS = (logging.WARNING, logging.INFO, logging.DEBUG)
-# Subcommands that load the estimation core (and with it the tracker's numba kernels).
-NEEDS_CORE = frozenset({"run", "replay", "calibrate"})
 
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
@@ -120,20 +117,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(checked, file=sys.stderr)
             return EXIT_USAGE
         args.checked_config = checked
-    if args.command in NEEDS_CORE:
+    if args.command == "run":
         from dffd.cli.loading import say_if_compiling
+        from dffd.warmup import start_background
 
         # The service starts on the kernels' NumPy twins while numba compiles in a separate
-        # process (seconds to a first estimate on a fresh install, not ~30 s); replay and
-        # calibrate wait for the compiled kernels (their results must not depend on timing);
-        # replay says so itself once it has checked its inputs.
-        background = args.command == "run"
-        if args.command != "replay":
-            say_if_compiling(args.command, background=background)
-        if background:
-            from dffd.warmup import start_background
-
-            warm = start_background()
+        # process (seconds to a first estimate on a fresh install, not ~30 s). Replay and
+        # calibrate wait for the compiled kernels (their results must not depend on timing)
+        # and say so themselves, once they have checked their inputs.
+        say_if_compiling("run", background=True)
+        warm = start_background()
     try:
         return cast(int, _resolve(args._implementation)(args))
     except KeyboardInterrupt:

@@ -106,7 +106,8 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config", type=Path, metavar="FILE",
         help="lab procedure: the service config naming camera.port, capture.device and "
-        "lens.file (focal length, pixel pitch); an operator places the target at each depth",
+        "lens.file (its focal length and pixel pitch are reused if it exists, else the packaged "
+        "sim-evi-d100's); an operator places the target at each depth",
     )  # fmt: skip
     parser.add_argument("--sim", action="store_true", help="calibrate the simulated camera")
     parser.add_argument(
@@ -119,7 +120,10 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
         "0.25-0.75 m over 2-10 m; with --sim each depth moved out to where the simulated "
         "target fits the tracker: 1.2 m to 20 m)",
     )  # fmt: skip
-    parser.add_argument("--out", type=Path, metavar="FILE", help="write the lens TOML here")
+    parser.add_argument(
+        "--out", type=Path, metavar="FILE",
+        help="write the lens TOML here (its directory must exist; checked before the first depth)",
+    )  # fmt: skip
     parser.add_argument("--name", default="calibrated", help="lens name in the TOML file")
     parser.add_argument(
         "--latency", action="store_true",

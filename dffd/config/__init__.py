@@ -12,7 +12,7 @@ error explainer), ``check`` (check-config and the pre-start checks).
 
 from __future__ import annotations
 
-from dffd.config.check import check_run_config, problems
+from dffd.config.check import check_run_config, missing_devices, problems
 from dffd.config.explain import ConfigError
 from dffd.config.loading import load_config
 from dffd.config.models import (
@@ -48,5 +48,6 @@ __all__ = [
     "WebSection",
     "check_run_config",
     "load_config",
+    "missing_devices",
     "problems",
 ]

@@ -19,7 +19,7 @@ from dffd.config.loading import load_config
 from dffd.config.models import DffdConfig
 from dffd.exitcodes import EXIT_OK, EXIT_USAGE
 
-__all__ = ["check_run_config", "problems", "run"]
+__all__ = ["check_run_config", "missing_devices", "problems", "run"]
 
 # camera.port URL forms that name a local serial device (others are network transports).
 _SERIAL_SCHEME = "serial://"
@@ -62,38 +62,13 @@ def problems(config: DffdConfig, *, devices: bool) -> list[str]:
         if file is not None and not file.is_file()
     ]
     if devices:
-        found.extend(_missing_devices(config))
+        found.extend(missing_devices(config))
     return found
 
 
-def run(args: argparse.Namespace) -> int:
-    """Validate ``args.file``; print the resolved config (stdout) or the problems (stderr)."""
-    try:
-        config = load_config(args.file)
-    except ConfigError as exc:
-        print(f"dffd check-config: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    found = problems(config, devices=args.check_files)
-    if found:
-        error = ConfigError(found, str(args.file))
-        print(f"dffd check-config: {error}", file=sys.stderr)
-        return EXIT_USAGE
-    absent = [] if args.check_files else _missing_devices(config)
-    if absent:
-        # Valid as a file (it may be meant for another machine), but `dffd run` here refuses it.
-        print(
-            "dffd check-config: note: devices are checked only with --check-files; on this "
-            "machine `dffd run` would stop with exit 2: " + "; ".join(absent),
-            file=sys.stderr,
-        )
-    if args.json:
-        print(json.dumps(config.model_dump(mode="json"), indent=2))
-    else:
-        print(config.to_toml(), end="")
-    return EXIT_OK
-
-
-def _missing_devices(config: DffdConfig) -> list[str]:
+def missing_devices(config: DffdConfig) -> list[str]:
+    """The local serial port and V4L2 device the config names that do not exist here, one
+    ``dotted.path: what to do`` line each."""
     found = []
     port = config.camera.port
     if config.camera.driver == "visca" and port is not None:
@@ -112,6 +87,33 @@ def _missing_devices(config: DffdConfig) -> list[str]:
                 "(`dffd devices` lists video devices)"
             )
     return found
+
+
+def run(args: argparse.Namespace) -> int:
+    """Validate ``args.file``; print the resolved config (stdout) or the problems (stderr)."""
+    try:
+        config = load_config(args.file)
+    except ConfigError as exc:
+        print(f"dffd check-config: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    found = problems(config, devices=args.check_files)
+    if found:
+        error = ConfigError(found, str(args.file))
+        print(f"dffd check-config: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    absent = [] if args.check_files else missing_devices(config)
+    if absent:
+        # Valid as a file (it may be meant for another machine), but `dffd run` here refuses it.
+        print(
+            "dffd check-config: note: devices are checked only with --check-files; on this "
+            "machine `dffd run` would stop with exit 2: " + "; ".join(absent),
+            file=sys.stderr,
+        )
+    if args.json:
+        print(json.dumps(config.model_dump(mode="json"), indent=2))
+    else:
+        print(config.to_toml(), end="")
+    return EXIT_OK
 
 
 def _serial_path(port: str) -> Path | None:
