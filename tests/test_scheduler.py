@@ -1074,3 +1074,48 @@ def test_static_target_inside_the_band_gets_no_command() -> None:
     assert all(0.0 < a.pan_rate_deg_s <= TELE.pan_tilt_max_correction_deg_s for a in drives)
     assert abs(h2.error_px(4.0)) <= 16.0
     assert h2.head(4.0)[1] == 0.0
+
+
+def test_no_target_velocity_from_directions_measured_mid_absolute_move() -> None:
+    """The model runs an absolute move at constant speed while the motors accelerate and brake:
+    directions measured mid-move are off, and two of them 1/30 s apart make a velocity of tens
+    of °/s (seen: −2.9°/s made of a target crossing at +10°/s; the drive that followed ran the
+    other way and lost it). The direction is kept; the velocity waits for a head at rest."""
+    cfg = replace(PT, pan_tilt_poll_interval_s=100.0, pan_tilt_lost_s=0.2, pan_tilt_search_s=0.3)
+    s = Scheduler(cfg)
+    s.next_actions(0.0)
+    s.on_pan_tilt_position(0.0, 0.0, 0.0)
+    s.on_pan_tilt_done(0.0)
+
+    def seen(t: float, real_pan: float) -> None:
+        # A static target at pan 20°, imaged from the head's real pan, tagged with the model's.
+        offset = math.tan(math.radians(20.0 - real_pan)) * 4.0 / 0.006
+        model_pan, model_tilt = s.pan_tilt_at(t)
+        s.on_estimate(
+            t,
+            sigma_m=None,
+            plan=None,
+            centroid_px=(319.5 + offset, 239.5),
+            pan_deg=model_pan,
+            tilt_deg=model_tilt,
+        )
+
+    seen(0.5, 0.0)
+    # Seen once, then lost: after the bounded search the head returns to it in one absolute move.
+    s.next_actions(0.5)
+    s.on_pan_tilt_done(0.55)
+    s.on_estimate(1.1, sigma_m=None, plan=None, centroid_px=None)
+    [back] = [a for a in s.next_actions(1.1) if isinstance(a, PanTiltAbsolute)]
+    assert back.pan_deg == pytest.approx(20.0, abs=0.01)
+    # Seen again mid-move, the real head lagging the model by 1.0°, then by 0.5°.
+    t1, t2 = 1.1 + 1 / 30, 1.1 + 2 / 30
+    assert 0.0 < s.pan_tilt_at(t2)[0] < 20.0 - 1.0  # the model is still on its way
+    seen(t1, s.pan_tilt_at(t1)[0] - 1.0)
+    seen(t2, s.pan_tilt_at(t2)[0] - 0.5)
+    s.on_pan_tilt_done(t2 + 0.01)
+    t3 = t2 + 0.55  # further than MAX_VELOCITY_GAP_S: no velocity from t2 to t3 either
+    assert s.pan_tilt_at(t3)[0] == back.pan_deg  # arrived
+    seen(t3, back.pan_deg)
+    # A velocity made of the slewing frames (−15°/s) would be fed forward as a drive now.
+    drives = [a for a in s.next_actions(t3 + 0.05) if isinstance(a, PanTiltDrive)]
+    assert drives == []

@@ -84,6 +84,9 @@ class PanTiltHead:
         self._last_cmd: PanTiltDrive | PanTiltAbsolute | PanTiltStop | None = None
         self._target: tuple[float, float] | None = None  # target direction, pan/tilt frame, deg
         self._target_t = -math.inf  # exposure time of that direction
+        # That direction was measured with the head at rest or driving, not mid-way through an
+        # absolute move (see ``_mid_absolute_move``): only such directions make a velocity.
+        self._target_steady = True
         self._velocity = (0.0, 0.0)  # filtered target angular velocity, deg/s
         self._stop_pending = False
         self._return_pending = False
@@ -167,7 +170,14 @@ class PanTiltHead:
         # the camera's own motion since then (the capture latency would otherwise overshoot).
         target = (pan + ex, tilt + ey)
         prev, prev_t = self._target, self._target_t
-        if prev is not None and t > prev_t and t - prev_t <= MAX_VELOCITY_GAP_S:
+        steady = not self._mid_absolute_move(t)
+        if (
+            prev is not None
+            and steady
+            and self._target_steady
+            and t > prev_t
+            and t - prev_t <= MAX_VELOCITY_GAP_S
+        ):
             # Target angular velocity (feed-forward): a first-order filter on the differences of
             # its direction; without it a P-controller trails a moving target by ω/K, which at
             # telephoto is more than the field of view. The first difference is taken as it is
@@ -187,10 +197,27 @@ class PanTiltHead:
             self._velocity_samples = 0
         self._target = target
         self._target_t = t
+        self._target_steady = steady
         self.search.seen(t, self._velocity[0])
         self._stop_pending = False
         self._return_pending = False
         self._eval_due = min(self._eval_due, self._last_cmd_t + self._min_interval())
+
+    def _mid_absolute_move(self, t: float) -> bool:
+        """The model has the head mid-way through an absolute move at ``t``.
+
+        The model runs an absolute move at its constant speed; the motors accelerate and brake,
+        so mid-move the modelled direction is off by up to ~0.7° at the search's speed (a search
+        view or the return to a lost target's direction: the simulated EVI-D100 measured 0.65°,
+        48 px at f = 31 mm). A target first seen during such a slew keeps that direction, but
+        its velocity waits for directions measured with the head at rest or driving: two
+        slewing frames 1/30 s apart made −2.9°/s of a target crossing at +10°/s, the drive
+        that followed ran the other way and lost it for 10 s.
+        """
+        seg = self._seg
+        if t < seg.t0 and self._prev_seg is not None:
+            seg = self._prev_seg
+        return seg.goal is not None and self.at(t) != seg.goal
 
     def on_track_rate(self, t: float, rate_deg_s: tuple[float, float]) -> None:
         """The 3D tracker's pan/tilt rate of the target's direction at ``t`` (deg/s)."""
@@ -270,6 +297,7 @@ class PanTiltHead:
         self._track_rate = None
         self._velocity = (0.0, 0.0)
         self._velocity_samples = 0
+        self._target_steady = True
         self._searching = False
         self._correcting = [False, False]
 
