@@ -473,3 +473,57 @@ def test_the_polarity_is_the_sign_of_opencvs_samples_inside_against_outside() ->
             got = impl.polarity(img, np.ascontiguousarray(pts), normals, 3.0)
             assert got == expected, (trial, impl.__name__)
     assert signs == {1.0, -1.0}
+
+
+@pytest.mark.parametrize("with_head_shift", [True, False])
+def test_a_head_that_starts_and_stops_is_followed_with_its_image_motion(
+    with_head_shift: bool,
+) -> None:
+    """A target still in the world while the head turns: 0, then 40 px/frame of image motion
+    for six frames (a drive), then 0 again. The step changes are three times the normals'
+    reach; the head's own image motion (the tags' pan/tilt) in the prediction keeps the target
+    on every frame. Without it the tracker loses the target at the first step."""
+    rng = np.random.default_rng(6)
+    tracker = ContourTracker(TrackerConfig(search_px=12))
+    c = np.array([150.0, 240.0])
+    img = render_disc(W, H, tuple(c), 20.0, 0.0, rng=rng)
+    poly = find_target(img)
+    assert poly is not None
+    assert tracker.start(img, poly, 0.0)
+    steps = [0.0] * 3 + [40.0] * 6 + [0.0] * 4
+    found = []
+    for k, step in enumerate(steps, start=1):
+        c = c + np.array([step, 0.0])
+        img = render_disc(W, H, tuple(c), 20.0, 0.0, rng=rng)
+        shift = (step, 0.0) if with_head_shift else (0.0, 0.0)
+        obs = tracker.update(img, k / 30, "similarity", shift)
+        found.append(obs.ok and obs.centroid == pytest.approx(tuple(c), abs=0.2))
+    if with_head_shift:
+        assert all(found)
+        assert not tracker.lost
+    else:
+        assert not found[3]  # the first 40 px step is beyond the normals' reach
+
+
+def test_a_re_acquired_contour_starts_with_the_velocity_between_the_sightings() -> None:
+    """A target crossing at 25 px/frame (twice the normals' reach), seen, lost, found again:
+    seeded with the velocity between the two sightings it is followed from the next frame."""
+    rng = np.random.default_rng(7)
+    v = np.array([25.0, 0.0])
+    seen = (100.0, 240.0)
+    for seeded in (True, False):
+        tracker = ContourTracker(TrackerConfig(search_px=12))
+        c = np.array(seen) + 4 * v  # found again four frames after it was last seen
+        img = render_disc(W, H, tuple(c), 20.0, 0.0, rng=rng)
+        poly = find_target(img)
+        assert poly is not None
+        assert tracker.start(img, poly, 4 / 30)
+        if seeded:
+            tracker.seed_velocity(0.0, seen, (0.0, 0.0))
+        oks = []
+        for k in range(5, 10):
+            c = c + v
+            img = render_disc(W, H, tuple(c), 20.0, 0.0, rng=rng)
+            obs = tracker.update(img, k / 30, "similarity")
+            oks.append(obs.ok and obs.centroid == pytest.approx(tuple(c), abs=0.2))
+        assert all(oks) if seeded else not oks[0]

@@ -395,3 +395,27 @@ def test_size_measurement_is_the_applied_bursts_size_on_its_frame_only() -> None
     for size_m, sigma in sizes:
         assert 0 < sigma < 0.01 * R
         assert size_m == pytest.approx(R, abs=max(5 * sigma, 0.003 * R))
+
+
+@pytest.mark.parametrize("compensate", [True, False])
+def test_the_head_turning_under_a_still_target_is_in_the_contours_prediction(
+    compensate: bool,
+) -> None:
+    """A still target 4 m ahead while the head pans right at 0.3° a frame (29 px of image
+    motion, more than twice the normals' reach) from the 4th frame: the tags' pan in the
+    prediction keeps an estimate on every frame; without it the target is lost."""
+    pipe = Pipeline(replace(SERVICE, compensate_head_motion=compensate), LENS)
+    c = LENS.counts_for_depth(4.0)
+    pans = [0.0] * 3 + [0.3 * k for k in range(1, 7)] + [1.8] * 3
+    estimates = []
+    for i, pan in enumerate(pans):
+        p = math.radians(pan)
+        # the world point (0, 0, 4) in the camera frame of that pan (x right, turned right)
+        pos = (-4.0 * math.sin(p), 0.0, 4.0 * math.cos(p))
+        img = render_scene(SCENE, LENS, c, pos, np.random.default_rng(i))
+        out = pipe.process(Frame(i, i / 30, img), FrameTag("track", c, pan, 0.0))
+        estimates.append(out.estimate is not None)
+    if compensate:
+        assert all(estimates)
+    else:
+        assert not all(estimates)

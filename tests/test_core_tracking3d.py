@@ -12,7 +12,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from dffd.core.geometry import camera_point, to_world, world_rotation
+from dffd.core.geometry import camera_point, image_shift, to_world, world_rotation
 from dffd.core.kernels_track_numpy import size_update as _size_update
 from dffd.core.kernels_track_numpy import unit_update_all as _unit_update_all
 from dffd.core.motion_models import (
@@ -635,3 +635,25 @@ def test_extrapolation_carries_the_last_estimate_without_a_step() -> None:
     assert ahead.model_probabilities == last.model_probabilities
     assert tracker.estimate() == last  # the state did not move
     assert tracker.extrapolate(last.t + 5.0) is None  # beyond max_gap_s
+
+
+def test_image_shift_is_the_head_turn_seen_on_a_world_fixed_point() -> None:
+    """Positive pan turns right (a fixed point moves left), positive tilt up (it moves down);
+    an off-centre point turned onto the axis lands on the principal point; no turn, no shift."""
+    f_px = 31.0 / 0.0074
+    size = (640, 480)
+    centre = (319.5, 239.5)
+    dx, dy = image_shift(centre, size, f_px, (0.0, 0.0), (1.0, 0.0))
+    assert dx == pytest.approx(-f_px * math.tan(math.radians(1.0)), rel=1e-12)
+    assert dy == 0.0
+    dx, dy = image_shift(centre, size, f_px, (5.0, 0.0), (5.0, 1.0))
+    assert dx == pytest.approx(0.0, abs=1e-9)
+    assert dy == pytest.approx(f_px * math.tan(math.radians(1.0)), rel=1e-12)
+    # a point seen off-centre: turning the head to its direction centres it
+    pt = (500.0, 100.0)
+    d = to_world(camera_point(pt, 1.0, size, 1.0, f_px), 3.0, -2.0)
+    pan = math.degrees(math.atan2(d[0], d[2]))
+    tilt = math.degrees(math.atan2(-d[1], math.hypot(d[0], d[2])))
+    dx, dy = image_shift(pt, size, f_px, (3.0, -2.0), (pan, tilt))
+    assert (pt[0] + dx, pt[1] + dy) == pytest.approx(centre, abs=1e-6)
+    assert image_shift(pt, size, f_px, (3.0, -2.0), (3.0, -2.0)) == (0.0, 0.0)

@@ -202,6 +202,11 @@ class ContourTracker:
         return None if self._points is None else self._points.copy()
 
     @property
+    def centroid(self) -> tuple[float, float]:
+        """The contour's centroid (px; predicted on a frame that failed), NaN when idle."""
+        return self._c
+
+    @property
     def bad_frames(self) -> int:
         """Consecutive frames without enough inliers."""
         return self._bad_frames
@@ -235,21 +240,40 @@ class ContourTracker:
         self._start_gradient = (t, grad)
         return True
 
-    def update(self, gray: npt.NDArray[np.uint8], t: float, motion: Motion) -> BoundaryObservation:
+    def update(
+        self,
+        gray: npt.NDArray[np.uint8],
+        t: float,
+        motion: Motion,
+        head_shift: tuple[float, float] = (0.0, 0.0),
+    ) -> BoundaryObservation:
         """Predict to time ``t``, measure on ``gray`` and update; raises if not active.
 
-        Two predictions: constant velocity, and the last position when the first one's fit is
-        in doubt (not found, fewer than ``HYPOTHESIS_INLIERS`` inliers, or the edges more than
-        ``HYPOTHESIS_MISS`` × ``search_px`` away from the prediction); the better fit is kept
-        (:func:`better_fit`). A one-frame jitter of the image (a jolt of the head) throws the
-        velocity, and the constant-velocity prediction of the next frame then lands beyond the
-        normals' reach while the last position still holds the target.
+        ``head_shift``: the image motion the head's own turn since the last frame gives a
+        world-fixed point at the contour (:func:`dffd.core.geometry.image_shift` of the frames'
+        pan/tilt tags). The velocity is the target's own image motion, the head's taken out: when
+        the head starts, stops or reverses (a drive after a search slew, a correction pulse), the
+        image motion jumps by more than the normals' reach, and the prediction follows it.
+
+        Two predictions: constant velocity, and the last position (moved by ``head_shift``) when
+        the first one's fit is in doubt (not found, fewer than ``HYPOTHESIS_INLIERS`` inliers, or
+        the edges more than ``HYPOTHESIS_MISS`` × ``search_px`` away from the prediction); the
+        better fit is kept (:func:`better_fit`). A one-frame jitter of the image (a jolt of the
+        head) throws the velocity, and the constant-velocity prediction of the next frame then
+        lands beyond the normals' reach while the last position still holds the target.
         """
         if self._points is None or self._t is None or self._box is None:
             raise RuntimeError("ContourTracker.update called without an active contour")
         dt = max(t - self._t, 0.0)
         vx, vy = self._velocity
+        hx, hy = head_shift
         sx, sy = vx * dt, vy * dt  # the constant-velocity step (floats: NumPy's arithmetic)
+        still_points, still_box = self._points, self._box
+        if hx != 0.0 or hy != 0.0:
+            sx, sy = sx + hx, sy + hy
+            still_points = self._points + np.array([hx, hy])
+            bx0, by0, bx1, by1 = self._box
+            still_box = (bx0 + hx, by0 + hy, bx1 + hx, by1 + hy)
         predicted = self._points + np.array([sx, sy])
         # the predicted box, exactly: rounding is monotonic, so min(x + s) = min(x) + s
         xmin, ymin, xmax, ymax = self._box
@@ -263,7 +287,7 @@ class ContourTracker:
         passes, refine = self.config.max_passes, self.config.refine_px
         fit = first = self._fit(grad, predicted, box_pred, motion, relax, passes, refine)
         if math.hypot(sx, sy) > refine and self._in_doubt(first.obs, first.c_in):
-            still = self._fit(grad, self._points, self._box, motion, relax, passes, refine)
+            still = self._fit(grad, still_points, still_box, motion, relax, passes, refine)
             if better_fit(still.obs, first.obs):
                 fit = still
         obs = fit.obs
@@ -271,6 +295,8 @@ class ContourTracker:
             if dt > 0:
                 ox, oy = self._c
                 nx, ny = obs.centroid
+                if hx != 0.0 or hy != 0.0:
+                    ox, oy = ox + hx, oy + hy
                 # alpha-filtered velocity: a single noisy frame must not throw the prediction
                 self._velocity = (
                     0.6 * vx + 0.4 * (nx - ox) / dt,
@@ -283,6 +309,22 @@ class ContourTracker:
             self._bad_frames += 1
         self._t = t
         return obs
+
+    def seed_velocity(
+        self, t_seen: float, seen_px: tuple[float, float], head_shift: tuple[float, float]
+    ) -> None:
+        """A contour just started on a target seen at ``seen_px`` at ``t_seen`` (before a short
+        loss): start from the velocity between the two sightings, the head's own turn between
+        them (``head_shift``) taken out. A target re-acquired while it crosses the image faster
+        than the normals' reach per frame is otherwise lost again on the next frame."""
+        if self._t is None or not self._t > t_seen:
+            return
+        dt = self._t - t_seen
+        cx, cy = self._c
+        self._velocity = (
+            (cx - seen_px[0] - head_shift[0]) / dt,
+            (cy - seen_px[1] - head_shift[1]) / dt,
+        )
 
     @property
     def lost(self) -> bool:

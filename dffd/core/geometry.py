@@ -63,6 +63,33 @@ def to_world(point_cam: Vec3, pan_deg: float, tilt_deg: float) -> Vec3:
     )
 
 
+def image_shift(
+    point_px: tuple[float, float],
+    image_size: tuple[int, int],
+    focal_length_px: float,
+    head_from: tuple[float, float],
+    head_to: tuple[float, float],
+) -> tuple[float, float]:
+    """The image motion of a world-fixed point seen at ``point_px`` when the head turns from
+    ``head_from`` to ``head_to`` (pan, tilt in degrees): where the point is then, minus where it
+    was. Exactly (0.0, 0.0) when the head did not move."""
+    if head_from == head_to:
+        return 0.0, 0.0
+    w, h = image_size
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    u, v = point_px
+    x, y, z = to_world(((u - cx) / focal_length_px, (v - cy) / focal_length_px, 1.0), *head_from)
+    # the world direction in the camera frame at head_to: R_world_cam(head_to)ᵀ, written out
+    p, t = math.radians(head_to[0]), math.radians(head_to[1])
+    cp, sp, ct, st = math.cos(p), math.sin(p), math.cos(t), math.sin(t)
+    xc = cp * x - sp * z
+    yc = sp * st * x + ct * y + cp * st * z
+    zc = sp * ct * x - st * y + cp * ct * z
+    if zc <= 0.0:
+        return 0.0, 0.0  # behind the camera: no turn between two frames does this
+    return cx + focal_length_px * xc / zc - u, cy + focal_length_px * yc / zc - v
+
+
 class VelocityEstimator:
     """Smoothed derivative of a 3-vector: one :class:`Differentiator` per axis.
 

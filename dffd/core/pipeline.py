@@ -40,7 +40,7 @@ from dffd.core.estimators import EstimatorBank
 from dffd.core.filters import Differentiator, KFNoise, KFTraceEvent
 from dffd.core.focus import FitConfig, PlanConfig
 from dffd.core.focus import plan_burst as _plan_burst
-from dffd.core.geometry import VelocityEstimator, camera_point, to_world
+from dffd.core.geometry import VelocityEstimator, camera_point, image_shift, to_world
 from dffd.core.lens import Lens
 from dffd.core.noise import NoiseAdaptConfig
 from dffd.core.outputs import (
@@ -92,6 +92,9 @@ SIZE_JUMP_MAX_BLUR_PX = 1.5
 # averaged): it was ~70 % of an acquisition frame's CPU at full size on 640×480 (blur, Otsu and
 # contours over the whole frame); ContourTracker.start refines the coarse polygon at full size.
 ACQUIRE_DOWNSCALE = 2
+# A target re-acquired at most this long (s) after its last sighting starts its contour with the
+# velocity between the two sightings; an older sighting says little of where it goes now.
+REACQUIRE_VELOCITY_GAP_S = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +116,11 @@ class PipelineConfig:
     # each frame's depth relative to the burst mid-time, z_i = z s(t_mid)/s(t_i), so every focus
     # setting is shifted by v(z_i) − v(z) before the fit (docs/estimation.md).
     compensate_burst_motion: bool = True
+    # Head motion in the contour's prediction: the image motion of the head's own turn between
+    # two frames (their tags' pan/tilt) is added to the target's (ContourTracker.update), and a
+    # target re-acquired within REACQUIRE_VELOCITY_GAP_S of its last sighting starts with the
+    # velocity between the two (ContourTracker.seed_velocity). Off: the image motion alone.
+    compensate_head_motion: bool = True
     plan_lead_s: float = 0.3  # plan → burst mid-time (slots at ~0, 0.2, 0.6 s at 30 fps)
     # CF1 / CF2 (Lemma 1 from the noise densities)
     cf1_k: float = 1.0  # rad/s
@@ -204,6 +212,10 @@ class Pipeline:
         self._state: TrackState = "idle" if self._hold else "acquiring"
         self._pending_roi: tuple[int, int, int, int] | None = None
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
+        # the head's pan/tilt at the contour's last frame (its image motion to the next one)
+        self._contour_head = (0.0, 0.0)
+        # the last frame the target was seen on: its time, centroid (px) and the head's pan/tilt
+        self._last_seen: tuple[float, tuple[float, float], tuple[float, float]] | None = None
         self._frames_since_search = 0
         self._candidate: tuple[float, float] | None = None  # a cut-off target (clipped.py)
         self._hint = ClippedHint(lens.focal_length_mm / lens.pixel_pitch_mm)
@@ -250,6 +262,7 @@ class Pipeline:
             raise ValueError(f"ROI needs a positive size, got {w}x{h}")
         self._pending_roi = (int(x), int(y), int(w), int(h))
         self._hold = False
+        self._last_seen = None  # another target: not the last one's velocity
         self._tracker.reset()
         self._state = "acquiring"
         self._reset_estimators()
@@ -261,6 +274,7 @@ class Pipeline:
         self._tracker.reset()
         self._state = "acquiring"
         self._last_box = None
+        self._last_seen = None
         self._candidate = None
         self._hint.reset()
         self._reset_estimators()
@@ -272,6 +286,7 @@ class Pipeline:
         self._hold = True
         self._state = "idle"
         self._last_box = None
+        self._last_seen = None
         self._candidate = None
         self._hint.reset()
         self._reset_estimators()
@@ -336,7 +351,12 @@ class Pipeline:
         # through a long focus travel (the first bursts span the working range: 40 transit
         # frames) drifts out of the outlier gate and the target is lost mid-burst (measured on
         # the reference simulator).
-        obs = self._tracker.update(frame.image, frame.t, self.config.motion)
+        head = (tag.pan_deg, tag.tilt_deg)
+        shift = (0.0, 0.0)
+        if self.config.compensate_head_motion:
+            shift = self._head_shift(frame, self._tracker.centroid, self._contour_head, head)
+        self._contour_head = head
+        obs = self._tracker.update(frame.image, frame.t, self.config.motion, shift)
         if self._tracker.lost:
             logger.info("target lost at frame %d (t=%.3f)", frame.index, frame.t)
             c = obs.centroid
@@ -351,6 +371,7 @@ class Pipeline:
             return PipelineOutput(self._state, None, measurement, obs)
         c = obs.centroid
         self._last_box = (c[0], c[1], obs.r_px)
+        self._last_seen = (frame.t, c, head)
         if tag.focus_counts is not None:
             if tag.role == "burst":
                 self._bursts.add(frame.index, frame.t, tag.focus_counts, tag.burst, obs)
@@ -395,6 +416,8 @@ class Pipeline:
             poly = find_target(gray, roi, self._tracker.config.min_radius_px, downscale=scale)
             if poly is not None and self._tracker.start(gray, poly, frame.t):
                 logger.info("target acquired at frame %d (roi=%s)", frame.index, roi)
+                self._contour_head = (tag.pan_deg, tag.tilt_deg)
+                self._seed_velocity(frame, tag)
                 self._candidate = None
                 self._ever_tracked = True
                 self._pending_roi = None
@@ -410,6 +433,30 @@ class Pipeline:
                 gray, frame.t, tag.pan_deg, tag.tilt_deg, self._tracker.config.min_radius_px
             )
         return False
+
+    def _head_shift(
+        self,
+        frame: Frame,
+        at_px: tuple[float, float],
+        head_from: tuple[float, float],
+        head_to: tuple[float, float],
+    ) -> tuple[float, float]:
+        """The image motion of a world-fixed point at ``at_px`` as the head turns between two
+        frames' tags (dffd.core.geometry.image_shift)."""
+        h, w = frame.image.shape[:2]
+        return image_shift(at_px, (w, h), self.lens.focal_length_px, head_from, head_to)
+
+    def _seed_velocity(self, frame: Frame, tag: FrameTag) -> None:
+        """A contour just started: a target seen shortly before starts with the velocity between
+        the two sightings (ContourTracker.seed_velocity)."""
+        seen = self._last_seen
+        if not self.config.compensate_head_motion or seen is None:
+            return
+        t_seen, c_seen, head_seen = seen
+        if not 0.0 < frame.t - t_seen <= REACQUIRE_VELOCITY_GAP_S:
+            return
+        shift = self._head_shift(frame, c_seen, head_seen, (tag.pan_deg, tag.tilt_deg))
+        self._tracker.seed_velocity(t_seen, c_seen, shift)
 
     # -- estimation -------------------------------------------------------------------------
     def _reset_estimators(self) -> None:
