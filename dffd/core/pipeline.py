@@ -93,7 +93,9 @@ SIZE_JUMP_MAX_BLUR_PX = 1.5
 # contours over the whole frame); ContourTracker.start refines the coarse polygon at full size.
 ACQUIRE_DOWNSCALE = 2
 # A target re-acquired at most this long (s) after its last sighting starts its contour with the
-# velocity between the two sightings; an older sighting says little of where it goes now.
+# velocity between the two sightings; an older sighting says little of where it goes now (the
+# scheduler's rule for the head's velocity, dffd.scheduler.head.MAX_VELOCITY_GAP_S: the core
+# does not import the scheduler).
 REACQUIRE_VELOCITY_GAP_S = 0.5
 
 
