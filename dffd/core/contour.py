@@ -267,9 +267,10 @@ class ContourTracker:
         dt = max(t - self._t, 0.0)
         vx, vy = self._velocity
         hx, hy = head_shift
+        turned = hx != 0.0 or hy != 0.0  # (a still head: exactly the values without a shift)
         sx, sy = vx * dt, vy * dt  # the constant-velocity step (floats: NumPy's arithmetic)
         still_points, still_box = self._points, self._box
-        if hx != 0.0 or hy != 0.0:
+        if turned:
             sx, sy = sx + hx, sy + hy
             still_points = self._points + np.array([hx, hy])
             bx0, by0, bx1, by1 = self._box
@@ -295,7 +296,7 @@ class ContourTracker:
             if dt > 0:
                 ox, oy = self._c
                 nx, ny = obs.centroid
-                if hx != 0.0 or hy != 0.0:
+                if turned:
                     ox, oy = ox + hx, oy + hy
                 # alpha-filtered velocity: a single noisy frame must not throw the prediction
                 self._velocity = (

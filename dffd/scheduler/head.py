@@ -102,10 +102,16 @@ class PanTiltHead:
         self.search = Search(config)  # the sweep while automatic acquisition sees nothing
 
     # -- model ---------------------------------------------------------------------------------
-    def at(self, t: float) -> tuple[float, float]:
+    def _segment_at(self, t: float) -> _Segment:
+        """The commanded motion in force at ``t`` (the last command's, once it reached the
+        motors; the one before until then)."""
         seg = self._seg
         if t < seg.t0 and self._prev_seg is not None:
-            seg = self._prev_seg  # the last command has not reached the motors yet
+            return self._prev_seg
+        return seg
+
+    def at(self, t: float) -> tuple[float, float]:
+        seg = self._segment_at(t)
         dt = max(0.0, t - seg.t0)
         if seg.goal is not None:
             cfg = self.config
@@ -128,7 +134,7 @@ class PanTiltHead:
         cfg = self.config
         t_s = t - link_time_s(PAN_TILT_POSITION_REPLY_BYTES, cfg.baudrate)
         model = self.at(t_s)
-        seg = self._seg if t_s >= self._seg.t0 or self._prev_seg is None else self._prev_seg
+        seg = self._segment_at(t_s)
         slack = [cfg.pan_tilt_resolution_deg / 2.0 + abs(r) * cfg.command_slot_s for r in seg.rate]
         pan0 = min(max(model[0], pan - slack[0]), pan + slack[0])
         tilt0 = min(max(model[1], tilt - slack[1]), tilt + slack[1])
@@ -214,10 +220,8 @@ class PanTiltHead:
         slewing frames 1/30 s apart made −2.9°/s of a target crossing at +10°/s, the drive
         that followed ran the other way and lost it for 10 s.
         """
-        seg = self._seg
-        if t < seg.t0 and self._prev_seg is not None:
-            seg = self._prev_seg
-        return seg.goal is not None and self.at(t) != seg.goal
+        goal = self._segment_at(t).goal
+        return goal is not None and self.at(t) != goal
 
     def on_track_rate(self, t: float, rate_deg_s: tuple[float, float]) -> None:
         """The 3D tracker's pan/tilt rate of the target's direction at ``t`` (deg/s)."""
