@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 import pytest
 
-from dffd.core import kernels, kernels_numpy
+from dffd.core import kernel_dispatch, kernels, kernels_numpy
 from dffd.core.contour import (
     BoundaryObservation,
     ContourTracker,
@@ -527,3 +527,44 @@ def test_a_re_acquired_contour_starts_with_the_velocity_between_the_sightings() 
             obs = tracker.update(img, k / 30, "similarity")
             oks.append(obs.ok and obs.centroid == pytest.approx(tuple(c), abs=0.2))
         assert all(oks) if seeded else not oks[0]
+
+
+def test_the_start_frame_is_fitted_once_and_its_update_returns_the_start() -> None:
+    """The update on the very frame a contour was started on returns the start's observation
+    without fitting it again; the same time on another array (a converted copy) is fitted."""
+    calls = 0
+    compiled = kernels
+
+    class Counting:
+        def __getattr__(self, name: str) -> Any:
+            return getattr(compiled, name)
+
+        def fit_passes(self, *args: Any) -> None:
+            nonlocal calls
+            calls += 1
+            compiled.fit_passes(*args)
+
+    rng = np.random.default_rng(11)
+    img = render_disc(W, H, (300.0, 220.0), 30.0, 0.0, rng=rng)
+    poly = find_target(img)
+    assert poly is not None
+    with kernel_dispatch.using(cast(kernel_dispatch.KernelSet, Counting())):
+        tracker = ContourTracker(TrackerConfig())
+        assert tracker.start(img, poly, 0.0)
+        started = tracker.points
+        at_start = calls
+        obs = tracker.update(img, 0.0, "similarity")
+        assert calls == at_start  # no second fit of the start frame
+        assert obs.ok
+        assert started is not None
+        np.testing.assert_array_equal(obs.points, started)
+        assert obs.r_px == pytest.approx(30.0, abs=0.1)
+        # the next frame is fitted as usual, and so is a copy of the start frame
+        nxt = tracker.update(img.copy(), 1 / 30, "similarity")
+        assert calls > at_start
+        assert nxt.ok
+        again = ContourTracker(TrackerConfig())
+        assert again.start(img, poly, 0.0)
+        before = calls
+        again.update(img.copy(), 0.0, "similarity")
+        assert calls > before
