@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from dffd.config import DffdConfig
+from dffd.core.contour import find_target
 from dffd.core.pipeline import Measurement, Pipeline
 from dffd.core.sizes import SizeHistory, SizeOffset
-from dffd.core.synthetic import DiscScene, closed_loop, render_scene, synthetic_lens
+from dffd.core.synthetic import DiscScene, closed_loop, render_disc, render_scene, synthetic_lens
 from dffd.core.types import FrameTag
 from dffd.literals import FocusMeasure
 from dffd.wiring import pipeline_config
@@ -419,3 +420,41 @@ def test_the_head_turning_under_a_still_target_is_in_the_contours_prediction(
         assert all(estimates)
     else:
         assert not all(estimates)
+
+
+@pytest.mark.parametrize("compensate", [True, False])
+def test_the_search_after_a_loss_follows_the_heads_turn(compensate: bool) -> None:
+    """A still target 4 m ahead is hidden (lost with the head still), the head pans 1.2° while
+    it is gone (~116 px of image motion), and it shows again: the ROI around the last contour
+    is moved by the head's turn and finds it on that very frame (before the whole frame is
+    searched again); left at its old pixel it misses it."""
+    pipe = Pipeline(replace(SERVICE, compensate_head_motion=compensate), LENS)
+    c = LENS.counts_for_depth(4.0)
+
+    def step(i: int, pan: float, visible: bool) -> str:
+        p = math.radians(pan)
+        # the world point (0, 0, 4) in the camera frame of that pan (far off when hidden)
+        pos = (-4.0 * math.sin(p) + (0.0 if visible else 50.0), 0.0, 4.0 * math.cos(p))
+        img = render_scene(SCENE, LENS, c, pos, np.random.default_rng(i))
+        return pipe.process(Frame(i, i / 30, img), FrameTag("track", c, pan, 0.0)).state
+
+    assert [step(i, 0.0, True) for i in range(3)] == ["tracking"] * 3
+    # lost on the third hidden frame (the head still), then the ROI-only frames: the whole
+    # frame is searched on every 5th frame after a loss
+    assert [step(3 + k, 0.0, False) for k in range(3)] == ["tracking", "tracking", "lost"]
+    assert [step(6 + k, 0.4 * (k + 1), False) for k in range(3)] == ["lost"] * 3
+    found = step(9, 1.2, True)
+    assert found == ("tracking" if compensate else "lost")
+
+
+@pytest.mark.parametrize(
+    ("roi", "found"),
+    [((-300, 170, 140, 140), False), ((-40, 170, 140, 140), True), ((700, 170, 50, 50), False)],
+)
+def test_an_roi_outside_the_frame_is_cut_to_the_frame(
+    roi: tuple[int, int, int, int], found: bool
+) -> None:
+    """An ROI partly outside the frame searches the part inside; one wholly outside finds
+    nothing (it once searched a strip at the frame's edge instead)."""
+    img = render_disc(640, 480, (60.0, 240.0), 20.0, 0.0, rng=np.random.default_rng(0))
+    assert (find_target(img, roi) is not None) == found

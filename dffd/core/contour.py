@@ -463,9 +463,10 @@ def find_target(
     if roi is None:
         x, y, rw, rh = 0, 0, w, h
     else:
-        x, y, rw, rh = roi
-        x, y = max(int(x), 0), max(int(y), 0)
-        rw, rh = min(int(rw), w - x), min(int(rh), h - y)
+        # the part of the ROI inside the frame (one partly or wholly outside is cut to it)
+        x0, y0, x1, y1 = int(roi[0]), int(roi[1]), int(roi[0] + roi[2]), int(roi[1] + roi[3])
+        x, y = max(x0, 0), max(y0, 0)
+        rw, rh = min(x1, w) - x, min(y1, h) - y
     if rw < 8 or rh < 8:
         return None
     if downscale > 1:

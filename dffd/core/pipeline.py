@@ -214,6 +214,7 @@ class Pipeline:
         self._state: TrackState = "idle" if self._hold else "acquiring"
         self._pending_roi: tuple[int, int, int, int] | None = None
         self._last_box: tuple[float, float, float] | None = None  # cx, cy, r of the last contour
+        self._last_box_head = (0.0, 0.0)  # the head's pan/tilt on _last_box's frame
         # the head's pan/tilt at the contour's last frame (its image motion to the next one)
         self._contour_head = (0.0, 0.0)
         # the last frame the target was seen on: its time, centroid (px) and the head's pan/tilt
@@ -363,6 +364,7 @@ class Pipeline:
             logger.info("target lost at frame %d (t=%.3f)", frame.index, frame.t)
             c = obs.centroid
             self._last_box = (c[0], c[1], obs.r_px)
+            self._last_box_head = head
             self._tracker.reset()
             self._state = "lost"
             self._bursts.reset()
@@ -373,6 +375,7 @@ class Pipeline:
             return PipelineOutput(self._state, None, measurement, obs)
         c = obs.centroid
         self._last_box = (c[0], c[1], obs.r_px)
+        self._last_box_head = head
         self._last_seen = (frame.t, c, head)
         if tag.focus_counts is not None:
             if tag.role == "burst":
@@ -404,6 +407,13 @@ class Pipeline:
         else:
             if self._last_box is not None:
                 cx, cy, r = self._last_box
+                if self.config.compensate_head_motion:
+                    # where the last contour's direction is now: the head goes on turning after
+                    # a loss (its drive, then the search sweep), and a target that stopped
+                    # where it was lost is there, not at its old pixel
+                    head = (tag.pan_deg, tag.tilt_deg)
+                    dx, dy = self._head_shift(frame, (cx, cy), self._last_box_head, head)
+                    cx, cy = cx + dx, cy + dy
                 half = 2.0 * r + 3 * self.config.search_px
                 rois.append((int(cx - half), int(cy - half), int(2 * half), int(2 * half)))
             self._frames_since_search += 1
