@@ -91,7 +91,8 @@ from dffd.calibrate_vertex import table_response
 from dffd.cli.loading import say_if_compiling
 from dffd.config import ConfigError, DffdConfig, load_config, missing_devices
 from dffd.core import kernel_dispatch
-from dffd.core.contour import ContourTracker, TrackerConfig, find_target
+from dffd.core.acquisition import find_target
+from dffd.core.contour import ContourTracker, TrackerConfig
 from dffd.core.focus import DEFAULT_FOCUS_MEASURE, PlanConfig, frame_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError, VertexResponse
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE

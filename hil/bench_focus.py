@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 import dffd.core.contour as contour_mod
-from dffd.core.contour import ContourTracker, TrackerConfig, find_target
+from dffd.core.acquisition import find_target
+from dffd.core.contour import ContourTracker, TrackerConfig
 from dffd.core.focus import fit_burst, frame_cost
 from dffd.core.lens import Lens, VertexResponse
 from drivers.sim.config import load_sim_camera_config, with_overrides

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from dffd.config import DffdConfig
+from dffd.core.acquisition import find_target
 from dffd.core.clipped import find_clipped_target
-from dffd.core.contour import TrackerConfig, find_target
+from dffd.core.contour import TrackerConfig
 from dffd.core.pipeline import Pipeline
 from dffd.core.synthetic import render_disc, synthetic_lens
 from dffd.core.types import FrameTag

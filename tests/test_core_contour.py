@@ -11,6 +11,7 @@ import numpy.typing as npt
 import pytest
 
 from dffd.core import kernel_dispatch, kernels, kernels_numpy
+from dffd.core.acquisition import find_target
 from dffd.core.contour import (
     BoundaryObservation,
     ContourTracker,
@@ -19,7 +20,6 @@ from dffd.core.contour import (
     TrackerConfig,
     _Fit,
     better_fit,
-    find_target,
     outward_normals,
     radius_of,
     resample_closed,

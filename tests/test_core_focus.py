@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from dffd.calibrate_vertex import table_response
-from dffd.core.contour import ContourTracker, TrackerConfig, find_target
+from dffd.core.acquisition import find_target
+from dffd.core.contour import ContourTracker, TrackerConfig
 from dffd.core.focus import (
     FitConfig,
     edge_variance_cost,

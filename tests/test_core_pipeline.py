@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dffd.config import DffdConfig
-from dffd.core.contour import find_target
+from dffd.core.acquisition import find_target
 from dffd.core.pipeline import Measurement, Pipeline
 from dffd.core.sizes import SizeHistory, SizeOffset
 from dffd.core.synthetic import DiscScene, closed_loop, render_disc, render_scene, synthetic_lens

@@ -13,13 +13,8 @@ import numpy as np
 import pytest
 
 from dffd.core import kernel_dispatch, kernels, kernels_numpy
-from dffd.core.contour import (
-    BoundaryObservation,
-    ContourTracker,
-    Motion,
-    TrackerConfig,
-    find_target,
-)
+from dffd.core.acquisition import find_target
+from dffd.core.contour import BoundaryObservation, ContourTracker, Motion, TrackerConfig
 from dffd.core.kernel_layout import OUT_STATUS, S_TMP, S_TMP2, S_WNEW, ST_KEPT, ST_NEED_WINDOW
 from dffd.core.synthetic import render_disc
 

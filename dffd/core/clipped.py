@@ -1,6 +1,6 @@
 """A target cut by the frame's edge: where to look while nothing whole is in view.
 
-:func:`dffd.core.contour.find_target` takes only blobs that lie wholly inside the frame (a
+:func:`dffd.core.acquisition.find_target` takes only blobs that lie wholly inside the frame (a
 contour cut by the edge cannot be followed). A target that starts half out of view and moves
 away is then never acquired: nothing is tracked, so pan/tilt never turns towards it
 (``random``'s seed 2 on the bench: the disc starts cut by the bottom edge, leaves the view

@@ -1,6 +1,6 @@
 """Compiled kernel of the acquisition search's mask (numba, ``nogil``): OpenCV's values, one pass.
 
-:func:`dffd.core.contour.find_target` thresholds a smoothed copy of the searched region with
+:func:`dffd.core.acquisition.find_target` thresholds a smoothed copy of the searched region with
 Otsu's threshold: ``cv2.resize(INTER_AREA)`` by 2 for a whole frame, ``cv2.GaussianBlur`` 5×5
 σ = 1, ``cv2.threshold(THRESH_OTSU)``. The three calls read and write the region four times and
 OpenCV's Otsu histogram is a scalar loop; this kernel does the same integer arithmetic in one

@@ -33,9 +33,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from dffd.core.acquisition import find_target
 from dffd.core.bursts import BurstAssembler, FocusSettings
 from dffd.core.clipped import ClippedHint
-from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig, find_target
+from dffd.core.contour import BoundaryObservation, ContourTracker, TrackerConfig
 from dffd.core.estimators import EstimatorBank
 from dffd.core.filters import Differentiator, KFNoise, KFTraceEvent
 from dffd.core.focus import FitConfig, PlanConfig
