@@ -297,6 +297,11 @@ def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> N
     assert cells[1:3] == ["aberrated", "2"]
     ratio = spread["mean"]["best_ss_rms_m"] / spread["mean"]["measured_ss_std_m"]
     assert cells[5] == f"{ratio:.2f}"
+    # the pooled coverage and each seed's own (lowest–highest) beside it
+    own = [row["best_coverage_2sigma"] for row in spread["per_seed"]]
+    pooled = report["estimators"][report["best"]]["coverage_2sigma"]
+    assert min(own) <= pooled <= max(own)
+    assert cells[6] == f"{pooled:.3f} ({min(own):.2f}–{max(own):.2f})"
     assert hil_main(["run", str(scenario), "--fast", "--seeds", "1,x"]) == 2
 
 
