@@ -45,15 +45,21 @@ Lab procedure (real camera):
    focal length, pixel pitch and f-number are reused (f is fixed at a fixed zoom); when it does
    not (the table this calibration writes), those of the packaged default lens
    (:data:`dffd.resources.DEFAULT_LENS`), with a note to check them. ``--out``'s directory must
-   exist and be writable: it is checked before the first depth.
+   exist and be writable: it is checked before the first depth. Run it from an interactive
+   terminal: without one on stdin (systemd, a pipe, ``</dev/null``) nobody can answer its
+   prompts, and it refuses to start (:mod:`dffd.calibrate_operator`).
 3. At each prompt place the target at that depth along the optical axis (measure from the
-   front principal plane; ±5 mm matters at 1 m) and press Enter. About a minute per depth. A
-   depth the other depths predict badly (beyond ``REPEAT_SIGMA`` σ of the table fitted without
-   it, :mod:`dffd.calibrate_check`) is asked for again at the end, and a third time while its
-   two sweeps disagree; the output gives the table's own 1σ per depth (µm of v, mm of depth).
+   front principal plane; ±5 mm matters at 1 m) and press Enter (keys typed before the prompt
+   are dropped; Ctrl-C or Ctrl-D stops, saying how many depths were measured: they are not kept,
+   no table is written). About a minute per depth. A depth the other depths predict badly
+   (beyond ``REPEAT_SIGMA`` σ of the table fitted without it, :mod:`dffd.calibrate_check`) is
+   asked for again at the end, and a third time while its two sweeps disagree; the output
+   gives the table's own 1σ per depth (µm of v, mm of depth).
 4. Set ``[lens] file`` to the new table and ``[capture] latency_frames`` to the printed latency.
 
-Exit codes: 0 written, 1 the procedure failed (target not found, non-monotone, camera), 2 usage.
+Exit codes: 0 written, 1 the procedure failed (target not found, non-monotone, camera), 2 usage
+(also the lab procedure without a terminal), 130 stopped by the operator (Ctrl-C; Ctrl-D at a
+prompt).
 """
 
 from __future__ import annotations
@@ -69,7 +75,7 @@ import stat
 import sys
 import tempfile
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -87,6 +93,7 @@ from dffd.calibrate_fit import (
     fit_table,
     fit_vertex,
 )
+from dffd.calibrate_operator import InputEndedError, ask_operator, stopped_message, terminal_problem
 from dffd.calibrate_vertex import table_response
 from dffd.cli.loading import say_if_compiling
 from dffd.config import ConfigError, DffdConfig, load_config, missing_devices
@@ -95,7 +102,7 @@ from dffd.core.acquisition import find_target
 from dffd.core.contour import ContourTracker, TrackerConfig
 from dffd.core.focus import DEFAULT_FOCUS_MEASURE, PlanConfig, frame_cost
 from dffd.core.lens import MM_PER_M, Lens, LensError, VertexResponse
-from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
+from dffd.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
 from dffd.literals import FocusMeasure
 from dffd.resources import DEFAULT_LENS, lens_table
 from drivers.sim.resources import reference_camera_file
@@ -227,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
     if unwritable is not None:
         print(f"dffd calibrate: {unwritable}", file=sys.stderr)
         return EXIT_USAGE
+    swept: list[DepthPoint] = []  # each sweep's point as it ends: what a stop had measured
     if args.sim:
         sim_rig = SimRig(args.sim_config or reference_camera_file())
         if args.depths is None:
@@ -241,7 +249,8 @@ def run(args: argparse.Namespace) -> int:
         # the measure the daemon would use with its default configuration
         measure = DffdConfig().estimators.focus_measure
         _load_kernels()
-        return asyncio.run(_calibrate_and_report(sim_rig, depths, args, measure))
+        procedure = calibrate_table(sim_rig, depths, measure, args.name, swept=swept)
+        return _run_and_report(procedure, sim_rig, depths, swept=swept, args=args, measure=measure)
     try:
         config = load_config(args.config)
         rig = LabRig(config)
@@ -252,10 +261,16 @@ def run(args: argparse.Namespace) -> int:
     if absent:
         print("dffd calibrate: " + "; ".join(absent), file=sys.stderr)
         return EXIT_USAGE
+    no_terminal = terminal_problem(len(depths))  # its prompts need an operator at a terminal
+    if no_terminal is not None:
+        print(f"dffd calibrate: {no_terminal}", file=sys.stderr)
+        return EXIT_USAGE
     if rig.optics_note is not None:
         print(f"dffd calibrate: note: {rig.optics_note}", file=sys.stderr)
     _load_kernels()
-    return asyncio.run(_lab(rig, depths, args))
+    measure = config.estimators.focus_measure
+    procedure = _lab(rig, depths, measure, args.name, swept)
+    return _run_and_report(procedure, rig, depths, swept=swept, args=args, measure=measure)
 
 
 def output_problem(path: Path) -> str | None:
@@ -310,14 +325,18 @@ def write_lens_file(path: Path, text: str) -> None:
 
 
 async def calibrate(
-    rig: Rig, depths: list[float], measure: FocusMeasure = DEFAULT_FOCUS_MEASURE
+    rig: Rig,
+    depths: list[float],
+    measure: FocusMeasure = DEFAULT_FOCUS_MEASURE,
+    swept: list[DepthPoint] | None = None,
 ) -> tuple[list[DepthPoint], int]:
     """The procedure on any rig: the capture latency, then the sharpest setting per depth
-    (with the estimator's focus ``measure``)."""
+    (with the estimator's focus ``measure``). Each point is appended to ``swept`` (the list
+    returned) as its sweep ends: what a stopped procedure had measured."""
     await rig.place_target(depths[0])
     latency = await measure_latency(rig)
     settle = latency + SETTLE_EXTRA_FRAMES
-    points = []
+    points = swept if swept is not None else []
     for i, z in enumerate(depths):
         if i:
             await rig.place_target(z)
@@ -331,10 +350,12 @@ async def calibrate_table(
     depths: list[float],
     measure: FocusMeasure = DEFAULT_FOCUS_MEASURE,
     name: str = "calibrated",
+    swept: list[DepthPoint] | None = None,
 ) -> CalibrationResult:
     """:func:`calibrate`, the table fitted, and the depths its check flags swept again (each at
-    most MAX_SWEEPS times; :mod:`dffd.calibrate_check`) until none is flagged."""
-    points, latency = await calibrate(rig, depths, measure)
+    most MAX_SWEEPS times; :mod:`dffd.calibrate_check`) until none is flagged; every sweep's
+    point is appended to ``swept`` as it ends."""
+    points, latency = await calibrate(rig, depths, measure, swept)
     f_number = getattr(rig, "f_number", None)
     settle = latency + SETTLE_EXTRA_FRAMES
     repeated: list[float] = []
@@ -578,6 +599,9 @@ class SimRig:
 
     async def frame_at(self, counts: int, settle_frames: int) -> Image:
         """The lens is at ``counts`` well before the next exposure (virtual time: no wait)."""
+        # One turn of the event loop a setting: nothing here waits, and Ctrl-C (asyncio.run
+        # cancels the main task) would otherwise reach the procedure only once it had ended.
+        await asyncio.sleep(0)
         source, state = self._session()
         k = self._frame
         t = source.frame_time(k)
@@ -654,7 +678,7 @@ class LabRig:
             config.lens.zoom_counts if config.lens.zoom_counts is not None else lens.zoom_counts
         )
         self.focus_range = self.profile.focus_range
-        self._prompt = prompt or _ask_operator
+        self._prompt = prompt or ask_operator
         self._camera: Any = None
         self._source: Any = None
         self._pending: asyncio.Task[None] | None = None
@@ -701,7 +725,7 @@ class LabRig:
         await self._link.__aexit__(None, None, None)
 
     async def place_target(self, z_m: float) -> None:
-        """Ask the operator to place the target and wait for Enter."""
+        """Ask the operator to place the target and wait for Enter (InputEndedError: Ctrl-D)."""
         await self._prompt(
             f"Place the target {z_m:g} m from the camera on the optical axis, then press Enter: "
         )
@@ -739,14 +763,39 @@ class LabRig:
 
 
 # -- private helpers --------------------------------------------------------------------------
-async def _calibrate_and_report(
-    rig: Rig, depths: list[float], args: argparse.Namespace, measure: FocusMeasure
+def _run_and_report(
+    procedure: Coroutine[Any, Any, CalibrationResult],
+    rig: Rig,
+    depths: list[float],
+    *,
+    swept: list[DepthPoint],
+    args: argparse.Namespace,
+    measure: FocusMeasure,
 ) -> int:
+    """Run the procedure, then print and write its table. Stopped by the operator (Ctrl-C;
+    Ctrl-D at a prompt): what had been measured (``swept``), and nothing written."""
+    # The table is written only after asyncio.run returned it: a Ctrl-C during the final fit
+    # (seconds; nothing awaits there) ends the main task cancelled, and nothing was written.
     try:
-        result = await calibrate_table(rig, depths, measure, args.name)
+        result = asyncio.run(procedure)
     except CalibrationError as exc:
         print(f"dffd calibrate: {exc}", file=sys.stderr)
         return EXIT_FAILURE
+    except InputEndedError:
+        why = "the input ended at the prompt (Ctrl-D)"
+    except KeyboardInterrupt:
+        why = "interrupted (Ctrl-C)"
+    else:
+        return _report(result, rig, args, measure)
+    stopped = stopped_message(why, depths, len(swept), args.out)
+    print(f"\ndffd calibrate: {stopped}", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def _report(
+    result: CalibrationResult, rig: Rig, args: argparse.Namespace, measure: FocusMeasure
+) -> int:
+    """Print the table's residuals and the latency; write the lens file (``--out``) or print it."""
     lines = result.lines()
     latency = result.latency_frames
     print(f"focus measure: {measure} ([estimators] focus_measure)")
@@ -771,22 +820,20 @@ async def _calibrate_and_report(
     return EXIT_OK
 
 
-async def _lab(rig: LabRig, depths: list[float], args: argparse.Namespace) -> int:
+async def _lab(
+    rig: LabRig, depths: list[float], measure: FocusMeasure, name: str, swept: list[DepthPoint]
+) -> CalibrationResult:
     from drivers.frames import FrameSourceError
     from drivers.visca.errors import ViscaError
 
     try:
         async with rig:
-            return await _calibrate_and_report(
-                rig, depths, args, rig.config.estimators.focus_measure
-            )
+            return await calibrate_table(rig, depths, measure, name, swept=swept)
     except (ViscaError, FrameSourceError, TimeoutError, OSError) as exc:
-        print(
-            f"dffd calibrate: camera or video device failed: {exc}; check camera.port, "
-            "capture.device, the cables and that the camera is powered",
-            file=sys.stderr,
-        )
-        return EXIT_FAILURE
+        raise CalibrationError(
+            f"camera or video device failed: {exc}; check camera.port, capture.device, the "
+            "cables and that the camera is powered"
+        ) from exc
 
 
 def _load_kernels() -> None:
@@ -827,10 +874,6 @@ def _blocks(image: Image) -> npt.NDArray[np.float64]:
 
 async def _completion(handle: Any) -> None:
     await handle.completed()
-
-
-async def _ask_operator(text: str) -> None:
-    await asyncio.to_thread(input, text)
 
 
 async def _costs(

@@ -16,7 +16,8 @@ EXIT_FAILURE: Final = 1
 # Usage or configuration error: bad arguments, an invalid config, or a file or device the config
 # names that does not exist (what `dffd check-config --check-files` reports, with this code).
 EXIT_USAGE: Final = 2
-# Interrupted by the user before start-up finished (128 + SIGINT, the shell's convention).
+# Interrupted by the user before start-up finished (128 + SIGINT, the shell's convention); also
+# `dffd calibrate` stopped by the operator (Ctrl-C, or Ctrl-D at a prompt).
 EXIT_INTERRUPTED: Final = 130
 
 EXIT_CODES_HELP: Final = (

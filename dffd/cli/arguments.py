@@ -138,10 +138,13 @@ def configure_calibrate(parser: argparse.ArgumentParser) -> None:
     parser.description = (
         "Fit the focus counts <-> v table from focus sweeps with the target at known depths and "
         "measure the capture latency. --sim: the simulated camera. --config FILE: the real "
-        "camera (serial port + video device of FILE); you are prompted to place the target at "
-        "each depth. Same procedure either way (docs/design.md §3.1)."
+        "camera (serial port + video device of FILE); you are prompted at the terminal to place "
+        "the target at each depth. Same procedure either way (docs/design.md §3.1)."
     )
-    parser.epilog = "Exit codes: 0 written, 1 calibration failed, 2 usage/config error."
+    parser.epilog = (
+        "Exit codes: 0 written, 1 calibration failed, 2 usage/config error (also --config "
+        "without a terminal on stdin), 130 stopped (Ctrl-C; Ctrl-D at a prompt)."
+    )
 
 
 def configure_check_config(parser: argparse.ArgumentParser) -> None:
