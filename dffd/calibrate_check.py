@@ -4,12 +4,12 @@ Per calibrated depth (:func:`check_table`):
 
 * the table's own σ: a parametric bootstrap of the focus model — each depth's vertex moved by
   its σ, the model of the same structure (degree, spline) refitted
-  (:func:`dffd.calibrate_fit.model_with_structure`), the spread of v at each setting;
+  (:func:`dffd.calibrate_model.model_with_structure`), the spread of v at each setting;
 * the leave-one-out residual: the depth's measured v against the table fitted without it, and
   that in units of the two σ combined (a z-score).
 
 A depth the others predict worse than :data:`REPEAT_SIGMA` σ is swept again (a lab would
-re-measure it; :func:`dffd.calibrate.calibrate_table`): once, and again (up to
+re-measure it; :func:`dffd.calibrate_procedure.calibrate_table`): once, and again (up to
 :data:`MAX_SWEEPS`) while its sweeps disagree beyond their σ — sweep noise, which a third sweep
 outvotes (:func:`dffd.calibrate_fit.combine_sweeps`); sweeps that agree with each other but not
 with the table say the model misses something between the depths (a cam ripple: more depths,
@@ -26,14 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from dffd.calibrate_fit import (
-    DepthPoint,
-    FocusModel,
-    FocusOptics,
-    TableFit,
-    model_v_mm,
-    model_with_structure,
-)
+from dffd.calibrate_fit import TableFit
+from dffd.calibrate_model import FocusModel, model_v_mm, model_with_structure
+from dffd.calibrate_types import DepthPoint, FocusOptics
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -18,7 +18,7 @@ centre. Where the bracket meets an end of the focus range the estimator shifts i
 it (:func:`dffd.core.focus.plan_burst`), and so does this reading: the result is then the
 three-point vertex of the pinned bracket (a target beyond ~11 m, whose ``v − h`` lies beyond
 infinity focus). A sweep that does not reach the bracket gives None (the caller falls back to
-the least-squares vertex, :func:`dffd.calibrate_fit.fit_vertex`).
+the least-squares vertex, :func:`dffd.calibrate_parabola.fit_vertex`).
 """
 
 from __future__ import annotations

@@ -1,14 +1,15 @@
 """The bench calibrates its lens table as the lab does (issue 11.7).
 
 Before a scenario's sessions run, the focus table the estimator is told is fitted by the code of
-``dffd calibrate --sim`` (:func:`dffd.calibrate.calibrate` and :func:`dffd.calibrate_fit.fit_table`
-on a :class:`dffd.calibrate.SimRig` of the session's own simulated camera: optics, lens, sensor
-noise and target; the lab's default depths; the estimator's focus measure), once per optics
-model and seed, cached under the run directory (the file name carries a key of the camera, the
-measure and the procedure, so a changed camera or procedure is calibrated anew). The bench then
-scores on that table, and ``report.json`` reports the calibration's own error against the
-simulator's true focus curve (``calibration`` block): the depth a calibrated setting stands for
-against the depth that setting truly focuses, over the working range; and the fit's residuals.
+``dffd calibrate --sim`` (:func:`dffd.calibrate_procedure.calibrate` and
+:func:`dffd.calibrate_fit.fit_table` on a :class:`dffd.calibrate_rigs.SimRig` of the session's
+own simulated camera: optics, lens, sensor noise and target; the lab's default depths; the
+estimator's focus measure), once per optics model and seed, cached under the run directory (the
+file name carries a key of the camera, the measure and the procedure, so a changed camera or
+procedure is calibrated anew). The bench then scores on that table, and ``report.json`` reports
+the calibration's own error against the simulator's true focus curve (``calibration`` block):
+the depth a calibrated setting stands for against the depth that setting truly focuses, over the
+working range; and the fit's residuals.
 """
 
 from __future__ import annotations
@@ -25,15 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from dffd.calibrate import (
-    DEFAULT_DEPTHS_M,
-    FRAMES_PER_SETTING,
-    SimRig,
-    calibrate_table,
-    lens_toml,
-)
+from dffd.calibrate import DEFAULT_DEPTHS_M
 from dffd.calibrate_check import REPEAT_SIGMA, TableCheck
 from dffd.calibrate_fit import VERTEX_WINDOW_BLUR_PX
+from dffd.calibrate_lensfile import lens_toml
+from dffd.calibrate_procedure import FRAMES_PER_SETTING, calibrate_table
+from dffd.calibrate_rigs import SimRig
 from dffd.core.lens import Lens, VertexResponse
 from dffd.literals import FocusMeasure
 from hil.scenario import Scenario

@@ -14,18 +14,13 @@ from typing import Any
 import pytest
 
 from dffd import calibrate as calibrate_module
-from dffd.calibrate import (
-    LabRig,
-    SimRig,
-    calibrate,
-    calibrate_table,
-    measure_latency,
-    run,
-    sharpest,
-    vertex,
-    write_lens_file,
-)
-from dffd.calibrate_fit import CalibrationError, DepthPoint, lens_from_points
+from dffd.calibrate import run
+from dffd.calibrate_fit import lens_from_points
+from dffd.calibrate_lensfile import write_lens_file
+from dffd.calibrate_parabola import vertex
+from dffd.calibrate_procedure import calibrate, calibrate_table, measure_latency, sharpest
+from dffd.calibrate_rigs import LabRig, SimRig
+from dffd.calibrate_types import CalibrationError, DepthPoint
 from dffd.cli.arguments import configure_calibrate
 from dffd.config import check_run_config, load_config
 from dffd.core.lens import Lens
@@ -119,7 +114,7 @@ def test_sim_runs_with_its_own_defaults(
     # `dffd calibrate --sim` with no --depths: the standard set, moved out where the simulated
     # 35.76 mm target is larger than the tracker takes (1.0 m: 222 px in radius). One frame a
     # setting instead of four keeps the test short (~40 s with the defaults).
-    monkeypatch.setattr("dffd.calibrate.FRAMES_PER_SETTING", 1)
+    monkeypatch.setattr("dffd.calibrate_procedure.FRAMES_PER_SETTING", 1)
     parser = argparse.ArgumentParser()
     configure_calibrate(parser)
     out = tmp_path / "lens.toml"
@@ -161,7 +156,7 @@ async def test_a_misplaced_depth_is_swept_again_and_the_table_recovers(
     """The operator first puts the target 0.3 m too far at 4.5 m: the other depths predict that
     sweep badly, the procedure asks for 4.5 m again; the two sweeps disagree, a third decides,
     and the table is right there."""
-    monkeypatch.setattr("dffd.calibrate.FRAMES_PER_SETTING", 1)
+    monkeypatch.setattr("dffd.calibrate_procedure.FRAMES_PER_SETTING", 1)
     placed: list[float] = []
 
     class Misplaced(SimRig):
@@ -259,7 +254,7 @@ def test_a_table_that_cannot_be_written_at_the_end_is_printed_not_lost(
 ) -> None:
     """The directory checked at the start is gone when the table is written (a removed or
     unmounted directory): exit 1, the reason, and the table on stdout, no traceback."""
-    monkeypatch.setattr("dffd.calibrate.FRAMES_PER_SETTING", 1)
+    monkeypatch.setattr("dffd.calibrate_procedure.FRAMES_PER_SETTING", 1)
     procedure = calibrate_module.calibrate_table
     directory = tmp_path / "lenses"
     directory.mkdir()

@@ -7,10 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from dffd import calibrate_fit
+from dffd import calibrate_fit, calibrate_model
 from dffd.calibrate import DEFAULT_DEPTHS_M
 from dffd.calibrate_check import SWEEPS_DISAGREE_CHI2, check_table, table_sigma_per_depth
-from dffd.calibrate_fit import AXIS_MISFIT_SIGMA, DepthPoint, TableFit, fit_table, fit_vertex
+from dffd.calibrate_fit import AXIS_MISFIT_SIGMA, TableFit, fit_table
+from dffd.calibrate_parabola import fit_vertex
+from dffd.calibrate_types import DepthPoint
 from dffd.core.focus import fit_burst, plan_burst
 from dffd.core.lens import MM_PER_M, Lens
 from dffd.resources import lens_table
@@ -266,13 +268,13 @@ def test_the_mean_smoothing_spline_is_scipys_on_points_and_fits_means_of_pairs()
     u = np.sort(rng.uniform(0.0, 1.0, 20))
     r = np.sin(3.0 * u) + 0.01 * rng.standard_normal(20)
     w = np.ones(20)
-    mine = calibrate_fit._mean_smoothing_spline(np.stack([u, u], axis=1), r, w, 1e-5)
+    mine = calibrate_model._mean_smoothing_spline(np.stack([u, u], axis=1), r, w, 1e-5)
     ref = make_smoothing_spline(u, r, w=w, lam=1e-5)
     x = np.linspace(0.0, 1.0, 101)
     assert np.max(np.abs(mine(x) - ref(x))) < 1e-5
     pairs = np.stack([u, np.minimum(u + 0.2, 1.0)], axis=1)
     means = 0.5 * (np.sin(3.0 * pairs[:, 0]) + np.sin(3.0 * pairs[:, 1]))
-    fit = calibrate_fit._mean_smoothing_spline(pairs, means, w, 1e-9)
+    fit = calibrate_model._mean_smoothing_spline(pairs, means, w, 1e-9)
     assert np.max(np.abs(0.5 * (fit(pairs[:, 0]) + fit(pairs[:, 1])) - means)) < 1e-4
 
 

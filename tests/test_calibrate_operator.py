@@ -19,8 +19,9 @@ from pathlib import Path
 import pytest
 
 from dffd import calibrate as calibrate_module
-from dffd.calibrate import SimRig, run
+from dffd.calibrate import run
 from dffd.calibrate_operator import InputEndedError, ask_operator, stopped_message
+from dffd.calibrate_rigs import SimRig
 from dffd.cli.arguments import configure_calibrate
 from dffd.exitcodes import EXIT_INTERRUPTED, EXIT_USAGE
 
@@ -132,7 +133,7 @@ def test_a_stop_after_a_depth_says_what_was_measured_and_writes_nothing(
 ) -> None:
     """The procedure stopped at the second placement, after the first depth's sweep: exit 130,
     the depth measured and that it is not kept, --out untouched."""
-    monkeypatch.setattr("dffd.calibrate.FRAMES_PER_SETTING", 1)
+    monkeypatch.setattr("dffd.calibrate_procedure.FRAMES_PER_SETTING", 1)
 
     class StoppedAtTheSecondDepth(SimRig):
         async def place_target(self, z_m: float) -> None:

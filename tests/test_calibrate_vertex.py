@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dffd.calibrate_fit import fit_vertex
+from dffd.calibrate_parabola import fit_vertex
 from dffd.calibrate_vertex import closed_loop_vertex
 
 H = 1.0  # the half-bracket (the sweep's unit)

@@ -71,7 +71,7 @@ def test_the_table_sigma_per_depth_is_interpolated_and_held_beyond() -> None:
 def test_the_vertex_response_round_trips_and_old_files_have_none(tmp_path: Path) -> None:
     """A lens file without ``vertex_response`` (every one before docs/estimation.md §21) loads
     without one: no correction, as before; one written by ``dffd calibrate`` reads back."""
-    from dffd.calibrate import lens_toml
+    from dffd.calibrate_lensfile import lens_toml
 
     assert Lens.from_toml(SIM_LENS).vertex_response is None
     lens = Lens.from_meta(synthetic_lens().to_meta() | {"vertex_response": RESPONSE})
