@@ -21,7 +21,7 @@ from dffd.scheduler import (
     PanTiltInquiry,
     PanTiltStop,
 )
-from drivers.visca import codec
+from drivers.visca import codec_replies, codec_requests
 from drivers.visca.camera import MOVE_TIMEOUT_FACTOR, CameraProfile, SpeedCode
 
 if TYPE_CHECKING:
@@ -37,11 +37,11 @@ __all__ = [
 ]
 
 ActionRequest: TypeAlias = (
-    codec.FocusDirect
-    | codec.FocusPositionInquiry
-    | codec.PanTiltDrive
-    | codec.PanTiltAbsolute
-    | codec.PanTiltPositionInquiry
+    codec_requests.FocusDirect
+    | codec_requests.FocusPositionInquiry
+    | codec_requests.PanTiltDrive
+    | codec_requests.PanTiltAbsolute
+    | codec_requests.PanTiltPositionInquiry
 )
 
 
@@ -60,35 +60,43 @@ def request_for(action: Action, profile: CameraProfile) -> ActionRequest:
             lo, hi = profile.focus_range
             if not lo <= counts <= hi:
                 raise ValueError(f"focus counts {counts} outside {lo}..{hi} of the {profile.name}")
-            return codec.FocusDirect(counts)
+            return codec_requests.FocusDirect(counts)
         case FocusInquiry():
-            return codec.FocusPositionInquiry()
+            return codec_requests.FocusPositionInquiry()
         case PanTiltDrive(pan_speed=pan, tilt_speed=tilt):
             # The scheduler's speed codes: its head model moves at those speeds. Speed 00 is a
             # syntax error on some models, so a stopped axis still carries code 01.
-            pan_dir = codec.PanDirection.STOP
+            pan_dir = codec_requests.PanDirection.STOP
             if pan:
-                pan_dir = codec.PanDirection.RIGHT if pan > 0 else codec.PanDirection.LEFT
-            tilt_dir = codec.TiltDirection.STOP
+                pan_dir = (
+                    codec_requests.PanDirection.RIGHT
+                    if pan > 0
+                    else codec_requests.PanDirection.LEFT
+                )
+            tilt_dir = codec_requests.TiltDirection.STOP
             if tilt:
-                tilt_dir = codec.TiltDirection.UP if tilt > 0 else codec.TiltDirection.DOWN
-            return codec.PanTiltDrive(
+                tilt_dir = (
+                    codec_requests.TiltDirection.UP
+                    if tilt > 0
+                    else codec_requests.TiltDirection.DOWN
+                )
+            return codec_requests.PanTiltDrive(
                 profile.pan_speed_code(SpeedCode(max(1, abs(pan)))),
                 profile.tilt_speed_code(SpeedCode(max(1, abs(tilt)))),
                 pan_dir,
                 tilt_dir,
             )
         case PanTiltAbsolute(pan_deg=pan, tilt_deg=tilt, pan_speed=ps, tilt_speed=ts):
-            return codec.PanTiltAbsolute(
+            return codec_requests.PanTiltAbsolute(
                 profile.pan_speed_code(SpeedCode(ps)),
                 profile.tilt_speed_code(SpeedCode(ts)),
                 profile.pan_to_counts(pan),
                 profile.tilt_to_counts(tilt),
             )
         case PanTiltStop():
-            return codec.PanTiltDrive.stop()
+            return codec_requests.PanTiltDrive.stop()
         case PanTiltInquiry():
-            return codec.PanTiltPositionInquiry()
+            return codec_requests.PanTiltPositionInquiry()
     raise TypeError(f"unknown scheduler action {action!r}")
 
 
@@ -100,9 +108,9 @@ def completion_timeout_s(
     The camera's worst-case travel times a tolerance on the motor speed, plus ``margin_s``
     (as :class:`~drivers.visca.camera.Camera` bounds its own moves).
     """
-    if isinstance(request, codec.FocusDirect):
+    if isinstance(request, codec_requests.FocusDirect):
         return profile.focus_full_travel_s * MOVE_TIMEOUT_FACTOR + margin_s
-    if isinstance(request, codec.PanTiltAbsolute):
+    if isinstance(request, codec_requests.PanTiltAbsolute):
         pan_span = profile.pan_range_deg[1] - profile.pan_range_deg[0]
         tilt_span = profile.tilt_range_deg[1] - profile.tilt_range_deg[0]
         travel_s = max(
@@ -124,11 +132,11 @@ def report_done(
         case FocusMove(move_id=move_id):
             scheduler.on_focus_completed(move_id, t)
         case FocusInquiry():
-            if not isinstance(answer, codec.FocusPosition):
+            if not isinstance(answer, codec_replies.FocusPosition):
                 raise TypeError(f"FocusPosInq answered with {answer!r}")
             scheduler.on_focus_position(t, answer.counts)
         case PanTiltInquiry():
-            if not isinstance(answer, codec.PanTiltPosition):
+            if not isinstance(answer, codec_replies.PanTiltPosition):
                 raise TypeError(f"Pan-tiltPosInq answered with {answer!r}")
             scheduler.on_pan_tilt_position(
                 t,

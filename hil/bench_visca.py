@@ -29,7 +29,7 @@ from typing import Any
 
 from drivers.sim.device import BITS_PER_BYTE, FIELD_PERIOD_S, DeviceConfig
 from drivers.sim.server import SimCameraServer
-from drivers.visca import codec
+from drivers.visca import codec_requests
 from drivers.visca.camera import Camera
 from drivers.visca.link import ViscaLink
 
@@ -45,8 +45,8 @@ async def measure(config: DeviceConfig, n: int) -> dict[str, Any]:
     async with SimCameraServer(config) as server, ViscaLink(server.path, BAUD) as link:
         await Camera(link).initialize()  # retries if the power-up Network Change races it
         out: dict[str, Any] = {"pace": config.pace, "field_period_s": config.field_period_s}
-        stop = codec.PanTiltDrive.stop()
-        inquiry = codec.FocusPositionInquiry()
+        stop = codec_requests.PanTiltDrive.stop()
+        inquiry = codec_requests.FocusPositionInquiry()
         cases: dict[str, Callable[[], Awaitable[object]]] = {
             "command": lambda: link.command(1, stop),
             "inquiry": lambda: link.inquire(1, inquiry),

@@ -59,7 +59,7 @@ from drivers.frames import Frame
 from drivers.sim.source import FrameTruth
 from drivers.sim.virtual_bus import VirtualBus
 from drivers.visca.camera import MOVE_TIMEOUT_MARGIN_S, CameraProfile, profile_for
-from drivers.visca.session import Answered, Completed, Failed, NetworkChanged
+from drivers.visca.session_types import Answered, Completed, Failed, NetworkChanged
 from hil.baselines import (
     ArucoBaseline,
     find_blob,

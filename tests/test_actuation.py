@@ -25,7 +25,7 @@ from dffd.scheduler import (
     PanTiltStop,
 )
 from drivers.sim.device import DeviceConfig
-from drivers.visca import codec
+from drivers.visca import codec_replies, codec_requests
 from drivers.visca.camera import EVI_D70, EVI_D100
 from tests.visca_support import WAIT_S, sim_camera
 
@@ -58,56 +58,58 @@ def _loop_running() -> bool:
 
 
 def test_focus_actions_become_focus_requests() -> None:
-    assert request_for(FocusMove(7, 0x2345), EVI_D100) == codec.FocusDirect(0x2345)
-    assert request_for(FocusInquiry(), EVI_D100) == codec.FocusPositionInquiry()
+    assert request_for(FocusMove(7, 0x2345), EVI_D100) == codec_requests.FocusDirect(0x2345)
+    assert request_for(FocusInquiry(), EVI_D100) == codec_requests.FocusPositionInquiry()
     assert is_focus_action(FocusMove(1, 0x2000))
     assert is_focus_action(FocusInquiry())
     assert not is_focus_action(PanTiltStop())
     with pytest.raises(ValueError, match="outside"):
         request_for(FocusMove(1, 0x0FFF), EVI_D100)  # nearer than the far end of the D100
     # The D70 focuses nearer (to 0xC000): the same counts are fine there.
-    assert request_for(FocusMove(1, 0x9000), EVI_D70) == codec.FocusDirect(0x9000)
+    assert request_for(FocusMove(1, 0x9000), EVI_D70) == codec_requests.FocusDirect(0x9000)
 
 
 def test_pan_tilt_degrees_and_speed_codes_come_from_the_camera_profile() -> None:
     absolute = PanTiltAbsolute(pan_deg=10.0, tilt_deg=-5.0, pan_speed=3, tilt_speed=2)
     d100 = request_for(absolute, EVI_D100)
-    assert d100 == codec.PanTiltAbsolute(3, 2, 144, -72)  # 14.4 counts/deg
+    assert d100 == codec_requests.PanTiltAbsolute(3, 2, 144, -72)  # 14.4 counts/deg
     d70 = request_for(absolute, EVI_D70)
-    assert isinstance(d70, codec.PanTiltAbsolute)
+    assert isinstance(d70, codec_requests.PanTiltAbsolute)
     assert (d70.pan, d70.tilt) == (round(10.0 * 2267 / 170), round(-5.0 * 1200 / 90))
     with pytest.raises(ValueError, match="pan_deg"):
         request_for(PanTiltAbsolute(150.0, 0.0, 1, 1), EVI_D100)  # beyond ±100°
     drive = request_for(PanTiltDrive(-4, 0, -3.7, 0.0), EVI_D100)
-    assert drive == codec.PanTiltDrive(
-        4, 1, codec.PanDirection.LEFT, codec.TiltDirection.STOP
+    assert drive == codec_requests.PanTiltDrive(
+        4, 1, codec_requests.PanDirection.LEFT, codec_requests.TiltDirection.STOP
     )  # a stopped axis still sends speed 01 (00 is a syntax error on some models)
     up = request_for(PanTiltDrive(2, 5, 2.4, 4.7), EVI_D100)
-    assert up == codec.PanTiltDrive(2, 5, codec.PanDirection.RIGHT, codec.TiltDirection.UP)
+    assert up == codec_requests.PanTiltDrive(
+        2, 5, codec_requests.PanDirection.RIGHT, codec_requests.TiltDirection.UP
+    )
     with pytest.raises(ValueError):
         request_for(PanTiltDrive(1, 0x15, 2.0, 155.0), EVI_D100)  # tilt codes end at 0x14
-    assert request_for(PanTiltStop(), EVI_D100) == codec.PanTiltDrive.stop()
-    assert request_for(PanTiltInquiry(), EVI_D100) == codec.PanTiltPositionInquiry()
+    assert request_for(PanTiltStop(), EVI_D100) == codec_requests.PanTiltDrive.stop()
+    assert request_for(PanTiltInquiry(), EVI_D100) == codec_requests.PanTiltPositionInquiry()
 
 
 def test_completion_timeouts_follow_the_profile() -> None:
-    focus = completion_timeout_s(codec.FocusDirect(0x3000), EVI_D100, 1.0)
+    focus = completion_timeout_s(codec_requests.FocusDirect(0x3000), EVI_D100, 1.0)
     assert focus == pytest.approx(EVI_D100.focus_full_travel_s * 1.25 + 1.0)
-    slow = completion_timeout_s(codec.PanTiltAbsolute(1, 1, 0, 0), EVI_D100, 1.0)
-    fast = completion_timeout_s(codec.PanTiltAbsolute(0x18, 0x14, 0, 0), EVI_D100, 1.0)
+    slow = completion_timeout_s(codec_requests.PanTiltAbsolute(1, 1, 0, 0), EVI_D100, 1.0)
+    fast = completion_timeout_s(codec_requests.PanTiltAbsolute(0x18, 0x14, 0, 0), EVI_D100, 1.0)
     assert slow is not None
     assert fast is not None
     assert slow == pytest.approx(200.0 / 2.0 * 1.25 + 1.0)  # the whole pan range at 2 °/s
     assert fast < slow
-    assert completion_timeout_s(codec.PanTiltDrive.stop(), EVI_D100, 1.0) is None
+    assert completion_timeout_s(codec_requests.PanTiltDrive.stop(), EVI_D100, 1.0) is None
 
 
 def test_outcomes_reach_the_right_scheduler_callbacks() -> None:
     rec = _Recorder()
     sched: Any = rec
     report_done(sched, FocusMove(4, 0x3000), 1.0, None, EVI_D100)
-    report_done(sched, FocusInquiry(), 2.0, codec.FocusPosition(0x3001), EVI_D100)
-    report_done(sched, PanTiltInquiry(), 3.0, codec.PanTiltPosition(144, -72), EVI_D100)
+    report_done(sched, FocusInquiry(), 2.0, codec_replies.FocusPosition(0x3001), EVI_D100)
+    report_done(sched, PanTiltInquiry(), 3.0, codec_replies.PanTiltPosition(144, -72), EVI_D100)
     report_done(sched, PanTiltStop(), 4.0, None, EVI_D100)
     report_failed(sched, FocusMove(5, 0x3000), 5.0)
     report_failed(sched, FocusInquiry(), 6.0)

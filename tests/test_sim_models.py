@@ -90,11 +90,11 @@ async def test_a_d100_refuses_what_a_d70_accepts() -> None:
     # gets the camera's syntax error, as from the real one).
     from drivers.sim.device import ViscaDevice
     from drivers.sim.state import CameraState
-    from drivers.visca import codec
+    from drivers.visca import codec, codec_requests
 
     d100 = ViscaDevice(CameraState(clock=lambda: 0.0), DeviceConfig(camera=sim_model("evi-d100")))
     d70 = ViscaDevice(CameraState(clock=lambda: 0.0), DeviceConfig(camera=sim_model("evi-d70")))
-    request = codec.FocusDirect(0xB000)
+    request = codec_requests.FocusDirect(0xB000)
     packet = codec.encode_request(request, 1)
     replies = []
     for device in (d100, d70):

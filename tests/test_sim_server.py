@@ -17,7 +17,7 @@ import serial
 
 from drivers.sim.device import DeviceConfig
 from drivers.sim.server import SimCameraServer
-from drivers.visca import codec
+from drivers.visca import codec, codec_framing, codec_replies, codec_requests
 
 # Replies come within ~1 field (17 ms); this only bounds a test on a loaded 2-core CI machine.
 SERIAL_TIMEOUT_S = 2.0
@@ -29,7 +29,7 @@ CLI_START_TIMEOUT_S = 20.0
 RAW_READ_TIMEOUT_S = 2.0
 WAIT_S = 5.0
 
-VERSION_INQ = codec.encode_request(codec.VersionInquiry(), 1)
+VERSION_INQ = codec.encode_request(codec_requests.VersionInquiry(), 1)
 VERSION_REPLY = bytes.fromhex("90 50 00 01 04 0D 02 00 02 FF")
 
 
@@ -66,7 +66,7 @@ async def test_command_moves_the_state_and_completes() -> None:
 
         def focus() -> bytes:
             with open_port(server.path) as port:
-                port.write(codec.encode_request(codec.FocusDirect(0x1800), 1))
+                port.write(codec.encode_request(codec_requests.FocusDirect(0x1800), 1))
                 return read_reply(port) + read_reply(port)
 
         assert await asyncio.to_thread(focus) == bytes.fromhex("90 41 FF 90 51 FF")
@@ -197,7 +197,7 @@ def _readline_with_timeout(proc: subprocess.Popen[str], timeout: float) -> str:
 
 def _read_packets(fd: int, count: int) -> list[bytes]:
     """Read ``count`` complete packets from a blocking fd (bounded by a select timeout)."""
-    reassembler = codec.Reassembler()
+    reassembler = codec_framing.Reassembler()
     found: list[bytes] = []
     while len(found) < count:
         ready, _, _ = select.select([fd], [], [], RAW_READ_TIMEOUT_S)
@@ -207,7 +207,7 @@ def _read_packets(fd: int, count: int) -> list[bytes]:
     return found
 
 
-async def _exchange_raw(path: str, request: codec.Request, replies: int) -> list[bytes]:
+async def _exchange_raw(path: str, request: codec_requests.Request, replies: int) -> list[bytes]:
     """Open the pty like libvisca does (os.open, no flush), write, read ``replies`` packets."""
     fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
     try:
@@ -223,16 +223,16 @@ async def test_a_controller_opening_the_pty_late_reads_only_replies_to_its_own_c
     async with SimCameraServer(config, stale_output_s=0.05) as server:
         # The power-up Network Change went to nobody: it is gone once it has waited 50 ms.
         await asyncio.wait_for(_discarded(server, 3), WAIT_S)
-        first = await _exchange_raw(server.path, codec.VersionInquiry(), 1)
-        assert first == [codec.encode_reply(codec.InquiryReply(
-            codec.Version(0x0001, 0x040D, 0x0200, 2).to_data()), 1)]  # fmt: skip
+        first = await _exchange_raw(server.path, codec_requests.VersionInquiry(), 1)
+        assert first == [codec.encode_reply(codec_replies.InquiryReply(
+            codec_replies.Version(0x0001, 0x040D, 0x0200, 2).to_data()), 1)]  # fmt: skip
         # A controller that sends a move and leaves: its Completion comes after it has gone.
         fd = os.open(server.path, os.O_RDWR | os.O_NOCTTY)
         tty.setraw(fd)
-        os.write(fd, codec.encode_request(codec.FocusDirect(0x8000), 1))
+        os.write(fd, codec.encode_request(codec_requests.FocusDirect(0x8000), 1))
         os.close(fd)
         await asyncio.wait_for(_discarded(server, 3 + 6), WAIT_S)
-        second = await _exchange_raw(server.path, codec.PowerInquiry(), 1)
+        second = await _exchange_raw(server.path, codec_requests.PowerInquiry(), 1)
         assert second == [bytes.fromhex("90 50 02 FF")]
 
 

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from drivers.sim.device import DeviceConfig
-from drivers.visca import codec
+from drivers.visca import codec_replies
 from drivers.visca.camera import EVI_D70, EVI_D100, Camera, SpeedCode, profile_for
 from drivers.visca.errors import (
     ViscaCancelledError,
@@ -36,7 +36,7 @@ async def _until_pan(camera: Camera, predicate: object) -> float:
 
 async def test_initialize_sets_manual_focus_and_powers_on() -> None:
     async with sim_camera() as (server, link, camera):
-        assert camera.version_info == codec.Version(0x0001, 0x040D, 0x0200, 2)
+        assert camera.version_info == codec_replies.Version(0x0001, 0x040D, 0x0200, 2)
         assert server.state.autofocus is False
         assert link.chain_length == 1
         await camera.power(False)
@@ -115,7 +115,7 @@ async def test_focus_and_pan_tilt_in_flight_together_on_two_sockets() -> None:
         await asyncio.wait_for(asyncio.gather(focus.completed(), move.completed()), WAIT_S)
         assert await camera.focus_position() == 0x8000
         assert await camera.pan_tilt_position() == pytest.approx((20.0, 10.0), abs=0.07)
-        assert codec.ErrorCode.BUFFER_FULL not in server.device.stats.errors_out
+        assert codec_replies.ErrorCode.BUFFER_FULL not in server.device.stats.errors_out
 
 
 async def test_cancel_stops_a_move_part_way() -> None:
@@ -144,7 +144,7 @@ async def test_stop_with_both_sockets_busy_cancels_the_move() -> None:
         with pytest.raises(ViscaCancelledError):
             await move.completed()
         await asyncio.wait_for(focus.completed(), WAIT_S)
-        assert codec.ErrorCode.BUFFER_FULL not in server.device.stats.errors_out
+        assert codec_replies.ErrorCode.BUFFER_FULL not in server.device.stats.errors_out
 
 
 async def test_not_executable_is_a_typed_exception() -> None:

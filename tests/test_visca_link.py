@@ -11,7 +11,7 @@ import pytest
 
 from drivers.sim.device import DeviceConfig
 from drivers.sim.faults import FaultSpec
-from drivers.visca import codec
+from drivers.visca import codec, codec_requests
 from drivers.visca.camera import EVI_D100
 from drivers.visca.errors import (
     LinkDownError,
@@ -25,16 +25,16 @@ from drivers.visca.link import ViscaLink
 from drivers.visca.session_types import LinkTimeouts
 from tests.visca_support import FAST, WAIT_S, ScriptedCamera, reinit_event, sim_camera
 
-FOCUS = codec.encode_request(codec.FocusDirect(0x2000), 1)
-ZOOM = codec.encode_request(codec.ZoomDirect(0x1000), 1)
-HOME = codec.encode_request(codec.PanTiltHome(), 1)
-STOP = codec.encode_request(codec.PanTiltDrive.stop(), 1)
-FOCUS_POS_INQ = codec.encode_request(codec.FocusPositionInquiry(), 1)
+FOCUS = codec.encode_request(codec_requests.FocusDirect(0x2000), 1)
+ZOOM = codec.encode_request(codec_requests.ZoomDirect(0x1000), 1)
+HOME = codec.encode_request(codec_requests.PanTiltHome(), 1)
+STOP = codec.encode_request(codec_requests.PanTiltDrive.stop(), 1)
+FOCUS_POS_INQ = codec.encode_request(codec_requests.FocusPositionInquiry(), 1)
 
 
 async def _sync(cam: ScriptedCamera, link: ViscaLink) -> None:
     """Round trip one inquiry: every byte the camera sent before has been processed after it."""
-    task = asyncio.create_task(link.inquire(1, codec.FocusPositionInquiry()))
+    task = asyncio.create_task(link.inquire(1, codec_requests.FocusPositionInquiry()))
     assert await cam.expect() == FOCUS_POS_INQ
     cam.send("90 50 01 02 03 04 FF")
     assert (await asyncio.wait_for(task, WAIT_S)).counts == 0x1234
@@ -45,7 +45,7 @@ async def _sync(cam: ScriptedCamera, link: ViscaLink) -> None:
 
 async def test_ack_and_completion_in_one_read() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        handle = link.submit(1, codec.FocusDirect(0x2000))
+        handle = link.submit(1, codec_requests.FocusDirect(0x2000))
         assert await cam.expect() == FOCUS
         cam.send("90 41 FF 90 51 FF")
         await asyncio.wait_for(handle.completed(), WAIT_S)
@@ -55,7 +55,7 @@ async def test_ack_and_completion_in_one_read() -> None:
 
 async def test_late_completion_is_never_taken_for_the_next_command() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        first = link.submit(1, codec.FocusDirect(0x2000), completion_timeout=0.05)
+        first = link.submit(1, codec_requests.FocusDirect(0x2000), completion_timeout=0.05)
         assert await cam.expect() == FOCUS
         cam.send("90 41 FF")
         with pytest.raises(ViscaTimeoutError) as info:
@@ -64,7 +64,7 @@ async def test_late_completion_is_never_taken_for_the_next_command() -> None:
         # The link cancels the socket it gave up on; the camera says it is already idle.
         assert await cam.expect() == bytes.fromhex("81 21 FF")
         cam.send("90 61 05 FF")
-        second = link.submit(1, codec.ZoomDirect(0x1000))
+        second = link.submit(1, codec_requests.ZoomDirect(0x1000))
         assert await cam.expect() == ZOOM
         cam.send("90 51 FF")  # the first command's Completion, late
         cam.send("90 41 FF")  # ACK of the second, in the same socket
@@ -78,13 +78,13 @@ async def test_late_completion_is_never_taken_for_the_next_command() -> None:
 
 async def test_completions_are_matched_per_socket_and_inquiries_answer_while_busy() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        focus = link.submit(1, codec.FocusDirect(0x2000))
+        focus = link.submit(1, codec_requests.FocusDirect(0x2000))
         assert await cam.expect() == FOCUS
         cam.send("90 41 FF")
-        home = link.submit(1, codec.PanTiltHome())
+        home = link.submit(1, codec_requests.PanTiltHome())
         assert await cam.expect() == HOME
         cam.send("90 42 FF")
-        third = link.submit(1, codec.ZoomDirect(0x1000))
+        third = link.submit(1, codec_requests.ZoomDirect(0x1000))
         # Both sockets busy: the third waits in the queue; an inquiry still goes out.
         await _sync(cam, link)
         assert cam.received.empty()
@@ -99,14 +99,14 @@ async def test_completions_are_matched_per_socket_and_inquiries_answer_while_bus
 
 async def test_stop_jumps_the_queue() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        link.submit(1, codec.FocusDirect(0x2000))
+        link.submit(1, codec_requests.FocusDirect(0x2000))
         assert await cam.expect() == FOCUS
         cam.send("90 41 FF")
-        link.submit(1, codec.PanTiltHome())
+        link.submit(1, codec_requests.PanTiltHome())
         assert await cam.expect() == HOME
         cam.send("90 42 FF")
-        zoom = link.submit(1, codec.ZoomDirect(0x1000))
-        stop = link.submit(1, codec.PanTiltDrive.stop())
+        zoom = link.submit(1, codec_requests.ZoomDirect(0x1000))
+        stop = link.submit(1, codec_requests.PanTiltDrive.stop())
         cam.send("90 52 FF")  # Home ends: one socket free
         assert await cam.expect() == STOP  # the Stop overtook the queued Zoom Direct
         cam.send("90 42 FF 90 52 FF")
@@ -118,14 +118,14 @@ async def test_stop_jumps_the_queue() -> None:
 
 async def test_error_replies_are_typed_and_carry_code_and_socket() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        task = asyncio.create_task(link.command(1, codec.FocusDirect(0x2000)))
+        task = asyncio.create_task(link.command(1, codec_requests.FocusDirect(0x2000)))
         assert await cam.expect() == FOCUS
         cam.send("90 62 41 FF")  # not executable, instead of the ACK
         with pytest.raises(ViscaNotExecutableError) as info:
             await asyncio.wait_for(task, WAIT_S)
         assert (info.value.code, info.value.socket, info.value.address) == (0x41, 2, 1)
         assert "manual focus" in str(info.value)
-        inquiry = asyncio.create_task(link.inquire(1, codec.VersionInquiry()))
+        inquiry = asyncio.create_task(link.inquire(1, codec_requests.VersionInquiry()))
         await cam.expect()
         cam.send("90 60 02 FF")  # syntax error answers the inquiry
         with pytest.raises(ViscaError) as syntax:
@@ -136,7 +136,7 @@ async def test_error_replies_are_typed_and_carry_code_and_socket() -> None:
 
 async def test_cancel_reports_cancelled_and_idle() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        handle = link.submit(1, codec.FocusDirect(0x2000))
+        handle = link.submit(1, codec_requests.FocusDirect(0x2000))
         assert await cam.expect() == FOCUS
         cam.send("90 41 FF")
         assert await asyncio.wait_for(handle.acked(), WAIT_S) == 1
@@ -154,10 +154,10 @@ async def test_cancel_reports_cancelled_and_idle() -> None:
 
 async def test_buffer_full_is_retried_after_a_socket_frees() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        first = link.submit(1, codec.PanTiltHome())
+        first = link.submit(1, codec_requests.PanTiltHome())
         assert await cam.expect() == HOME
         cam.send("90 41 FF")
-        second = link.submit(1, codec.FocusDirect(0x2000))
+        second = link.submit(1, codec_requests.FocusDirect(0x2000))
         assert await cam.expect() == FOCUS
         cam.send("90 60 03 FF")  # buffer full although the link thinks socket 2 is free
         # Resync: the link cancels the socket it believed free, then retries.
@@ -174,7 +174,7 @@ async def test_buffer_full_is_retried_after_a_socket_frees() -> None:
 
 async def test_buffer_full_retries_are_bounded() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        task = asyncio.create_task(link.command(1, codec.FocusDirect(0x2000)))
+        task = asyncio.create_task(link.command(1, codec_requests.FocusDirect(0x2000)))
         for _ in range(FAST.buffer_full_retries + 1):
             packet = await cam.expect()
             while packet != FOCUS:  # resync cancels in between
@@ -189,7 +189,7 @@ async def test_a0_replies_are_accepted_for_a_single_camera(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
-        task = asyncio.create_task(link.inquire(1, codec.FocusPositionInquiry()))
+        task = asyncio.create_task(link.inquire(1, codec_requests.FocusPositionInquiry()))
         assert await cam.expect() == FOCUS_POS_INQ
         cam.send("A0 50 01 02 03 04 FF")
         assert (await asyncio.wait_for(task, WAIT_S)).counts == 0x1234
@@ -199,11 +199,11 @@ async def test_a0_replies_are_accepted_for_a_single_camera(
 async def test_silent_camera_times_out_with_named_waits() -> None:
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
         with pytest.raises(ViscaTimeoutError) as inquiry:
-            await asyncio.wait_for(link.inquire(1, codec.PowerInquiry()), WAIT_S)
+            await asyncio.wait_for(link.inquire(1, codec_requests.PowerInquiry()), WAIT_S)
         assert inquiry.value.wait == "inquiry reply"
         assert isinstance(inquiry.value, TimeoutError)
         with pytest.raises(ViscaTimeoutError) as command:
-            await asyncio.wait_for(link.command(1, codec.FocusDirect(0x2000)), WAIT_S)
+            await asyncio.wait_for(link.command(1, codec_requests.FocusDirect(0x2000)), WAIT_S)
         assert command.value.wait == "ACK"
         with pytest.raises(ViscaTimeoutError) as broadcast:
             await asyncio.wait_for(link.ensure_addressed(), WAIT_S)
@@ -219,9 +219,9 @@ async def test_no_byte_stream_crashes_the_link(caplog: pytest.LogCaptureFixture)
     caplog.set_level(logging.WARNING)
     async with ScriptedCamera() as cam, ViscaLink(cam.path, timeouts=FAST) as link:
         pending = [
-            asyncio.create_task(link.command(1, codec.FocusDirect(0x2000))),
-            asyncio.create_task(link.command(1, codec.PanTiltHome())),
-            asyncio.create_task(link.inquire(1, codec.VersionInquiry())),
+            asyncio.create_task(link.command(1, codec_requests.FocusDirect(0x2000))),
+            asyncio.create_task(link.command(1, codec_requests.PanTiltHome())),
+            asyncio.create_task(link.inquire(1, codec_requests.VersionInquiry())),
             asyncio.create_task(link.cancel(1, 2)),
         ]
         for _ in range(400):
@@ -240,7 +240,7 @@ async def test_no_byte_stream_crashes_the_link(caplog: pytest.LogCaptureFixture)
         # Afterwards a well-behaved camera gets a clean answer through. Answer what the noise
         # provoked on the way (cancels after timeouts, re-addressing after a "Network Change").
         cam.send(b"\xff")
-        task = asyncio.create_task(link.inquire(1, codec.FocusPositionInquiry()))
+        task = asyncio.create_task(link.inquire(1, codec_requests.FocusPositionInquiry()))
         while (packet := await cam.expect()) != FOCUS_POS_INQ:
             if packet[0] == 0x88:
                 cam.send(b"\x88\x30\x02\xff" if packet[1] == 0x30 else packet)
@@ -382,7 +382,7 @@ async def test_requests_during_a_power_cycle_wait_for_re_initialisation() -> Non
 async def test_loop_url_echo_is_not_taken_for_a_reply() -> None:
     async with ViscaLink("loop://", timeouts=FAST) as link:
         with pytest.raises(ViscaTimeoutError):
-            await link.inquire(1, codec.PowerInquiry())
+            await link.inquire(1, codec_requests.PowerInquiry())
         assert link.health().stray_replies == 1  # our own request, echoed
 
 

@@ -14,7 +14,7 @@ from drivers.sim.device import DeviceConfig, ViscaDevice
 from drivers.sim.faults import Faults
 from drivers.sim.state import CameraState
 from drivers.sim.virtual_bus import VirtualBus
-from drivers.visca import codec
+from drivers.visca import codec, codec_replies, codec_requests
 from drivers.visca.errors import (
     LinkBusyError,
     LinkDownError,
@@ -26,7 +26,8 @@ from drivers.visca.errors import (
     ViscaSyntaxError,
     ViscaTimeoutError,
 )
-from drivers.visca.session import (
+from drivers.visca.session import ViscaSession
+from drivers.visca.session_types import (
     COMMAND_QUEUE_MAX,
     Acked,
     Answered,
@@ -35,15 +36,14 @@ from drivers.visca.session import (
     LinkTimeouts,
     NetworkChanged,
     SessionEvent,
-    ViscaSession,
 )
 
 T = LinkTimeouts()  # production timings: time is virtual, nothing waits
-FOCUS = codec.encode_request(codec.FocusDirect(0x2000), 1)
-ZOOM = codec.encode_request(codec.ZoomDirect(0x1000), 1)
-HOME = codec.encode_request(codec.PanTiltHome(), 1)
-STOP = codec.encode_request(codec.PanTiltDrive.stop(), 1)
-FOCUS_INQ = codec.encode_request(codec.FocusPositionInquiry(), 1)
+FOCUS = codec.encode_request(codec_requests.FocusDirect(0x2000), 1)
+ZOOM = codec.encode_request(codec_requests.ZoomDirect(0x1000), 1)
+HOME = codec.encode_request(codec_requests.PanTiltHome(), 1)
+STOP = codec.encode_request(codec_requests.PanTiltDrive.stop(), 1)
+FOCUS_INQ = codec.encode_request(codec_requests.FocusPositionInquiry(), 1)
 
 
 class Script:
@@ -86,7 +86,7 @@ def _final(event: SessionEvent) -> bool:
 
 def test_ack_and_completion_in_one_read() -> None:
     sc = Script()
-    ticket = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    ticket = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     assert sc.sent() == [FOCUS]
     sc.at(0.02).reply("90 41 FF 90 51 FF")
     assert sc.events == [Acked(ticket, 0.02, 1), Completed(ticket, 0.02)]
@@ -96,7 +96,7 @@ def test_ack_and_completion_in_one_read() -> None:
 
 def test_late_completion_is_never_taken_for_the_next_command() -> None:
     sc = Script()
-    first = sc.s.submit(codec.FocusDirect(0x2000), 0.0, completion_timeout=0.5)
+    first = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0, completion_timeout=0.5)
     sc.sent()
     sc.at(0.02).reply("90 41 FF")
     assert sc.s.next_deadline() == pytest.approx(0.52)
@@ -106,7 +106,7 @@ def test_late_completion_is_never_taken_for_the_next_command() -> None:
     assert error.wait == "Completion"
     assert sc.sent() == [bytes.fromhex("81 21 FF")]  # the socket given up on is cancelled
     sc.reply("90 61 05 FF")
-    second = sc.s.submit(codec.ZoomDirect(0x1000), 0.6)
+    second = sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.6)
     assert sc.sent() == [ZOOM]
     sc.at(0.62).reply("90 51 FF")  # the first command's Completion, late
     sc.reply("90 41 FF")  # ACK of the second, in the same socket
@@ -118,20 +118,20 @@ def test_late_completion_is_never_taken_for_the_next_command() -> None:
 
 def test_completions_per_socket_and_inquiries_answer_while_both_sockets_run() -> None:
     sc = Script()
-    focus = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
-    home = sc.s.submit(codec.PanTiltHome(), 0.0)
-    zoom = sc.s.submit(codec.ZoomDirect(0x1000), 0.0)
+    focus = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
+    home = sc.s.submit(codec_requests.PanTiltHome(), 0.0)
+    zoom = sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.0)
     assert sc.sent() == [FOCUS]  # one ACK outstanding at a time
     sc.at(0.02).reply("90 41 FF")
     assert sc.sent() == [HOME]
     sc.at(0.04).reply("90 42 FF")
     assert sc.sent() == []  # both sockets busy: Zoom waits
-    inquiry = sc.s.submit(codec.FocusPositionInquiry(), 0.05)
+    inquiry = sc.s.submit(codec_requests.FocusPositionInquiry(), 0.05)
     assert sc.sent() == [FOCUS_INQ]
     sc.at(0.06).reply("90 50 01 02 03 04 FF")
     answered = sc.final(inquiry)
     assert isinstance(answered, Answered)
-    assert answered.value == codec.FocusPosition(0x1234)
+    assert answered.value == codec_replies.FocusPosition(0x1234)
     sc.at(0.1).reply("90 52 FF")
     assert isinstance(sc.final(home), Completed)
     assert sc.final(focus) is None
@@ -144,14 +144,14 @@ def test_completions_per_socket_and_inquiries_answer_while_both_sockets_run() ->
 
 def test_stop_jumps_the_queue_and_cancel_goes_at_once() -> None:
     sc = Script()
-    sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     sc.at(0.01).reply("90 41 FF")
-    sc.s.submit(codec.PanTiltHome(), 0.01)
+    sc.s.submit(codec_requests.PanTiltHome(), 0.01)
     sc.at(0.02).reply("90 42 FF")
     sc.sent()
-    zoom = sc.s.submit(codec.ZoomDirect(0x1000), 0.03)
-    stop = sc.s.submit(codec.PanTiltDrive.stop(), 0.03)
-    cancel = sc.s.submit(codec.Cancel(1), 0.03)
+    zoom = sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.03)
+    stop = sc.s.submit(codec_requests.PanTiltDrive.stop(), 0.03)
+    cancel = sc.s.submit(codec_requests.Cancel(1), 0.03)
     assert sc.sent() == [bytes.fromhex("81 21 FF")]  # no socket needed, no queue
     sc.at(0.04).reply("90 61 04 FF")
     assert isinstance(sc.error(1), ViscaCancelledError)
@@ -167,8 +167,8 @@ def test_stop_jumps_the_queue_and_cancel_goes_at_once() -> None:
 
 def test_two_cancels_of_one_socket_share_one_packet() -> None:
     sc = Script()
-    a = sc.s.submit(codec.Cancel(2), 0.0)
-    b = sc.s.submit(codec.Cancel(2), 0.0)
+    a = sc.s.submit(codec_requests.Cancel(2), 0.0)
+    b = sc.s.submit(codec_requests.Cancel(2), 0.0)
     assert sc.sent() == [bytes.fromhex("81 22 FF")]
     sc.at(0.01).reply("90 62 05 FF")
     assert [getattr(sc.final(t), "value", None) for t in (a, b)] == [False, False]
@@ -176,12 +176,12 @@ def test_two_cancels_of_one_socket_share_one_packet() -> None:
 
 def test_error_replies_are_typed_and_go_to_the_right_request() -> None:
     sc = Script()
-    command = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    command = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     sc.at(0.01).reply("90 62 41 FF")  # not executable, instead of the ACK
     error = sc.error(command)
     assert isinstance(error, ViscaNotExecutableError)
     assert (error.code, error.socket, error.address) == (0x41, 2, 1)
-    inquiry = sc.s.submit(codec.VersionInquiry(), 0.02)
+    inquiry = sc.s.submit(codec_requests.VersionInquiry(), 0.02)
     sc.at(0.03).reply("90 60 02 FF")  # syntax error answers the inquiry
     assert isinstance(sc.error(inquiry), ViscaSyntaxError)
     assert sc.s.stats().errors_by_code == {0x41: 1, 0x02: 1}
@@ -189,18 +189,18 @@ def test_error_replies_are_typed_and_go_to_the_right_request() -> None:
 
 def test_syntax_error_answers_the_oldest_request_owed_a_first_reply() -> None:
     sc = Script()
-    inquiry = sc.s.submit(codec.PowerInquiry(), 0.0)
-    command = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    inquiry = sc.s.submit(codec_requests.PowerInquiry(), 0.0)
+    command = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     assert len(sc.sent()) == 2
     sc.at(0.01).reply("90 60 02 FF 90 41 FF")
     assert isinstance(sc.error(inquiry), ViscaSyntaxError)
     assert sc.final(command) is None
-    assert sc.s.running(1) == {1: codec.FocusDirect(0x2000)}
+    assert sc.s.running(1) == {1: codec_requests.FocusDirect(0x2000)}
 
 
 def test_error_in_a_running_socket_fails_that_command() -> None:
     sc = Script()
-    command = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    command = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     sc.at(0.01).reply("90 41 FF")
     sc.at(0.5).reply("90 61 41 FF")
     assert isinstance(sc.error(command), ViscaNotExecutableError)
@@ -208,9 +208,9 @@ def test_error_in_a_running_socket_fails_that_command() -> None:
 
 def test_buffer_full_with_free_sockets_resyncs_and_retries() -> None:
     sc = Script()
-    first = sc.s.submit(codec.PanTiltHome(), 0.0)
+    first = sc.s.submit(codec_requests.PanTiltHome(), 0.0)
     sc.at(0.01).reply("90 41 FF")
-    second = sc.s.submit(codec.FocusDirect(0x2000), 0.01)
+    second = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.01)
     assert sc.sent() == [HOME, FOCUS]
     sc.at(0.02).reply("90 60 03 FF")  # buffer full though socket 2 is believed free
     assert sc.sent() == [bytes.fromhex("81 22 FF")]  # resync: cancel the "free" socket
@@ -229,12 +229,12 @@ def test_buffer_full_with_free_sockets_resyncs_and_retries() -> None:
 
 def test_buffer_full_hold_ends_when_a_socket_frees() -> None:
     sc = Script()
-    sc.s.submit(codec.PanTiltHome(), 0.0)
+    sc.s.submit(codec_requests.PanTiltHome(), 0.0)
     sc.at(0.01).reply("90 41 FF")
-    sc.s.submit(codec.ZoomDirect(0x1000), 0.01)
+    sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.01)
     sc.at(0.02).reply("90 42 FF")
     sc.sent()
-    third = sc.s.submit(codec.FocusDirect(0x2000), 0.02)
+    third = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.02)
     assert sc.sent() == []  # both sockets known busy: a third is never even written
     sc.at(0.03).reply("90 51 FF")
     assert sc.sent() == [FOCUS]
@@ -249,7 +249,7 @@ def test_buffer_full_hold_ends_when_a_socket_frees() -> None:
 
 def test_buffer_full_retries_are_bounded() -> None:
     sc = Script()
-    command = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    command = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     t = 0.0
     attempts = 0
     while sc.final(command) is None and t < 5.0:
@@ -267,16 +267,16 @@ def test_buffer_full_retries_are_bounded() -> None:
 
 def test_a0_replies_are_accepted_for_a_single_camera() -> None:
     sc = Script()
-    inquiry = sc.s.submit(codec.FocusPositionInquiry(), 0.0)
+    inquiry = sc.s.submit(codec_requests.FocusPositionInquiry(), 0.0)
     sc.at(0.01).reply("A0 50 01 02 03 04 FF")
-    assert getattr(sc.final(inquiry), "value", None) == codec.FocusPosition(0x1234)
+    assert getattr(sc.final(inquiry), "value", None) == codec_replies.FocusPosition(0x1234)
 
 
 def test_timeouts_are_named_deadlines_and_guard_the_next_request() -> None:
     sc = Script()
-    inquiry = sc.s.submit(codec.PowerInquiry(), 0.0)
-    command = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
-    broadcast = sc.s.submit(codec.AddressSet(), 0.0)
+    inquiry = sc.s.submit(codec_requests.PowerInquiry(), 0.0)
+    command = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
+    broadcast = sc.s.submit(codec_requests.AddressSet(), 0.0)
     assert len(sc.sent()) == 3
     assert sc.s.next_deadline() == pytest.approx(min(T.ack_s, T.inquiry_s))
     sc.at(2.0)
@@ -292,34 +292,34 @@ def test_timeouts_are_named_deadlines_and_guard_the_next_request() -> None:
 
 def test_late_reply_guard_holds_the_next_inquiry() -> None:
     sc = Script()
-    sc.s.submit(codec.PowerInquiry(), 0.0)
+    sc.s.submit(codec_requests.PowerInquiry(), 0.0)
     sc.sent()
     sc.at(T.inquiry_s)  # timed out
-    second = sc.s.submit(codec.FocusPositionInquiry(), T.inquiry_s + 0.01)
+    second = sc.s.submit(codec_requests.FocusPositionInquiry(), T.inquiry_s + 0.01)
     assert sc.sent() == []  # held: the first one's answer may still come
     sc.reply("90 50 02 FF")  # it does: a PowerInq answer, nobody's now
     assert sc.s.next_deadline() == pytest.approx(T.inquiry_s + T.late_reply_guard_s)
     sc.at(T.inquiry_s + T.late_reply_guard_s)
     assert sc.sent() == [FOCUS_INQ]
     sc.at(0.5).reply("90 50 00 00 00 01 FF")
-    assert getattr(sc.final(second), "value", None) == codec.FocusPosition(1)
+    assert getattr(sc.final(second), "value", None) == codec_replies.FocusPosition(1)
     assert sc.s.stats().stray_replies == 1
 
 
 def test_straggler_that_does_not_parse_is_dropped() -> None:
     sc = Script()
-    inquiry = sc.s.submit(codec.FocusPositionInquiry(), 0.0)
+    inquiry = sc.s.submit(codec_requests.FocusPositionInquiry(), 0.0)
     sc.at(0.01).reply("90 50 02 FF")  # a one-byte answer cannot be a focus position
     assert sc.final(inquiry) is None
     sc.reply("90 50 00 00 01 00 FF")
-    assert getattr(sc.final(inquiry), "value", None) == codec.FocusPosition(0x10)
+    assert getattr(sc.final(inquiry), "value", None) == codec_replies.FocusPosition(0x10)
 
 
 def test_socket_reuse_means_the_completion_was_lost() -> None:
     sc = Script()
-    first = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    first = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     sc.at(0.01).reply("90 41 FF")
-    second = sc.s.submit(codec.ZoomDirect(0x1000), 0.01)
+    second = sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.01)
     sc.at(0.02).reply("90 41 FF")  # socket 1 again: the first must have ended
     assert isinstance(sc.final(first), Completed)
     assert sc.s.stats().lost_completions == 1
@@ -330,8 +330,8 @@ def test_socket_reuse_means_the_completion_was_lost() -> None:
 def test_one_socket_camera_runs_one_command_at_a_time() -> None:
     sc = Script()
     sc.s.set_max_sockets(1, 1)
-    sc.s.submit(codec.FocusDirect(0x2000), 0.0)
-    sc.s.submit(codec.ZoomDirect(0x1000), 0.0)
+    sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
+    sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.0)
     sc.at(0.01).reply("90 41 FF")
     assert sc.sent() == [FOCUS]
     sc.at(0.02).reply("90 51 FF")
@@ -341,19 +341,21 @@ def test_one_socket_camera_runs_one_command_at_a_time() -> None:
 def test_queue_is_bounded_and_queued_requests_time_out() -> None:
     sc = Script()
     sc.s.set_max_sockets(1, 1)
-    sc.s.submit(codec.PanTiltHome(), 0.0, completion_timeout=2 * T.queue_s)
+    sc.s.submit(codec_requests.PanTiltHome(), 0.0, completion_timeout=2 * T.queue_s)
     sc.at(0.01).reply("90 41 FF")
-    queued = [sc.s.submit(codec.FocusDirect(0x2000), 0.01) for _ in range(COMMAND_QUEUE_MAX)]
+    queued = [
+        sc.s.submit(codec_requests.FocusDirect(0x2000), 0.01) for _ in range(COMMAND_QUEUE_MAX)
+    ]
     with pytest.raises(LinkBusyError, match="already queued"):
-        sc.s.submit(codec.FocusDirect(0x2000), 0.01)
+        sc.s.submit(codec_requests.FocusDirect(0x2000), 0.01)
     sc.at(0.01 + T.queue_s)
     assert all(getattr(sc.error(t), "wait", "") == "free socket" for t in queued)
 
 
 def test_abandon_drops_a_queued_request_only() -> None:
     sc = Script()
-    running = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
-    queued = sc.s.submit(codec.ZoomDirect(0x1000), 0.0)
+    running = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
+    queued = sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.0)
     assert sc.s.abandon(queued)
     assert not sc.s.abandon(running)
     sc.at(0.01).reply("90 41 FF")
@@ -366,13 +368,13 @@ def test_abandon_drops_a_queued_request_only() -> None:
 
 def test_requests_on_the_line_and_garbage_are_not_replies() -> None:
     sc = Script()
-    inquiry = sc.s.submit(codec.PowerInquiry(), 0.0)
+    inquiry = sc.s.submit(codec_requests.PowerInquiry(), 0.0)
     (packet,) = sc.sent()
     sc.at(0.01).reply(packet)  # loop:// echo of our own request
     sc.reply("12 34 FF 90 FF 80 38 FF 9F")  # noise, a packet too short, a bad header
     assert sc.final(inquiry) is None
     sc.reply("90 50 02 FF")
-    assert getattr(sc.final(inquiry), "value", None) == codec.PowerState(on=True)
+    assert getattr(sc.final(inquiry), "value", None) == codec_replies.PowerState(on=True)
     stats = sc.s.stats()
     assert stats.stray_replies >= 1
     assert stats.dropped_bytes > 0
@@ -380,46 +382,46 @@ def test_requests_on_the_line_and_garbage_are_not_replies() -> None:
 
 def test_network_change_fails_everything_closes_the_gate_and_privileged_requests_pass() -> None:
     sc = Script()
-    command = sc.s.submit(codec.FocusDirect(0x2000), 0.0)
+    command = sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0)
     sc.at(0.01).reply("90 41 FF")
     sc.reply("90 38 FF")
     assert isinstance(sc.error(command), ViscaNetworkChangeError)
     assert NetworkChanged(0.01, 1) in sc.events
     assert sc.s.gated
     sc.sent()
-    user = sc.s.submit(codec.FocusDirect(0x3000), 0.02)
-    address = sc.s.submit(codec.AddressSet(), 0.02)  # broadcasts are never held
-    reinit = sc.s.submit(codec.FocusMode(auto=False), 0.02, privileged=True)
+    user = sc.s.submit(codec_requests.FocusDirect(0x3000), 0.02)
+    address = sc.s.submit(codec_requests.AddressSet(), 0.02)  # broadcasts are never held
+    reinit = sc.s.submit(codec_requests.FocusMode(auto=False), 0.02, privileged=True)
     assert sc.sent() == [
         bytes.fromhex("88 30 01 FF"),
-        codec.encode_request(codec.FocusMode(auto=False), 1),
+        codec.encode_request(codec_requests.FocusMode(auto=False), 1),
     ]
     sc.at(0.03).reply("88 30 02 FF 90 41 FF 90 51 FF")
     assert isinstance(sc.final(address), Answered)
     assert isinstance(sc.final(reinit), Completed)
     assert sc.sent() == []  # the user's command still waits for the gate
     sc.s.open_gate(0.04)
-    assert sc.sent() == [codec.encode_request(codec.FocusDirect(0x3000), 1)]
+    assert sc.sent() == [codec.encode_request(codec_requests.FocusDirect(0x3000), 1)]
     assert sc.final(user) is None
 
 
 def test_connection_lost_fails_every_waiter_and_writes_nothing_until_made() -> None:
     sc = Script()
     tickets = [
-        sc.s.submit(codec.FocusDirect(0x2000), 0.0),
-        sc.s.submit(codec.ZoomDirect(0x1000), 0.0),
-        sc.s.submit(codec.PowerInquiry(), 0.0),
-        sc.s.submit(codec.Cancel(2), 0.0),
-        sc.s.submit(codec.AddressSet(), 0.0),
+        sc.s.submit(codec_requests.FocusDirect(0x2000), 0.0),
+        sc.s.submit(codec_requests.ZoomDirect(0x1000), 0.0),
+        sc.s.submit(codec_requests.PowerInquiry(), 0.0),
+        sc.s.submit(codec_requests.Cancel(2), 0.0),
+        sc.s.submit(codec_requests.AddressSet(), 0.0),
     ]
     sc.events += sc.s.connection_lost(0.01, LinkDownError("gone"))
     assert all(isinstance(sc.error(t), LinkDownError) for t in tickets)
     assert sc.sent() == []
     assert sc.s.next_deadline() is None
-    later = sc.s.submit(codec.PowerInquiry(), 0.02)
+    later = sc.s.submit(codec_requests.PowerInquiry(), 0.02)
     assert sc.sent() == []
     sc.s.connection_made(0.03)
-    assert sc.sent() == [codec.encode_request(codec.PowerInquiry(), 1)]
+    assert sc.sent() == [codec.encode_request(codec_requests.PowerInquiry(), 1)]
     sc.at(0.04).reply("90 50 02 FF")
     assert isinstance(sc.final(later), Answered)
 
@@ -469,8 +471,8 @@ class HonestCamera:
             self._emit(t, bytes([0x90, 0x60 | socket, code, 0xFF]))
         elif msg[0] == 0x09:  # FocusPosInq
             self.run.answers[self.inquiries] = 0x1000 + self.inquiries
-            self._emit(t, codec.encode_reply(codec.InquiryReply(
-                codec.FocusPosition(0x1000 + self.inquiries).to_data()), 1))  # fmt: skip
+            self._emit(t, codec.encode_reply(codec_replies.InquiryReply(
+                codec_replies.FocusPosition(0x1000 + self.inquiries).to_data()), 1))  # fmt: skip
             self.inquiries += 1
         else:
             free = [s for s, busy in self.sockets.items() if busy is None]
@@ -526,8 +528,8 @@ def test_replies_are_never_given_to_the_wrong_request(
     refuse_one: bool,
 ) -> None:
     rng = random.Random(seed)
-    commands: list[codec.Command] = [
-        codec.FocusDirect(0x1000 + 0x100 * i) for i in range(n_commands)
+    commands: list[codec_requests.Command] = [
+        codec_requests.FocusDirect(0x1000 + 0x100 * i) for i in range(n_commands)
     ]
     packets = [codec.encode_request(c, 1) for c in commands]
     timeout = 1.0
@@ -590,7 +592,7 @@ def test_replies_are_never_given_to_the_wrong_request(
                 ticket = session.submit(commands[i], t, completion_timeout=timeout)
                 command_tickets[ticket] = packets[i]
             else:
-                inquiry_tickets.append(session.submit(codec.FocusPositionInquiry(), t))
+                inquiry_tickets.append(session.submit(codec_requests.FocusPositionInquiry(), t))
         camera.advance(t)
         events += session.poll(t)
         to_camera(t)
@@ -634,7 +636,7 @@ def test_replies_are_never_given_to_the_wrong_request(
     answered = {t: finals[t] for t in inquiry_tickets if isinstance(finals[t], Answered)}
     for ticket, answer in answered.items():
         assert isinstance(answer, Answered)
-        assert answer.value == codec.FocusPosition(truth[ticket]), (ticket, answer, truth)
+        assert answer.value == codec_replies.FocusPosition(truth[ticket]), (ticket, answer, truth)
     if not (drop_in or drop_out or duplicate or garbage):
         # A clean line: everything the camera could do succeeded.
         for ticket, packet in command_tickets.items():
@@ -669,15 +671,15 @@ def _run(bus: VirtualBus, until: float) -> list[SessionEvent]:
 
 def test_virtual_bus_answers_network_change_and_runs_paced_commands() -> None:
     bus = _bus()
-    early = bus.submit(codec.PowerInquiry(), 0.0)
+    early = bus.submit(codec_requests.PowerInquiry(), 0.0)
     events = _run(bus, 0.01)  # the power-up Network Change (3 bytes at 9600 baud) is in
     assert isinstance(events[0], Failed)
     assert events[0].ticket == early
     assert isinstance(events[0].error, ViscaNetworkChangeError)
     assert isinstance(events[1], NetworkChanged)
     assert bus.session.gated  # re-addressing: user requests are held until it is done
-    focus = bus.submit(codec.FocusDirect(0x3000), 0.01)
-    inquiry = bus.submit(codec.FocusPositionInquiry(), 0.01)
+    focus = bus.submit(codec_requests.FocusDirect(0x3000), 0.01)
+    inquiry = bus.submit(codec_requests.FocusPositionInquiry(), 0.01)
     events = _run(bus, 5.0)
     assert not bus.session.gated
     finals = {e.ticket: e for e in events if _final(e)}
@@ -685,10 +687,10 @@ def test_virtual_bus_answers_network_change_and_runs_paced_commands() -> None:
     assert isinstance(finals[inquiry], Answered)
     # Focus Direct at 0x2000 counts from 0x1000 takes the lens model's travel time.
     assert finals[focus].t > 0.1
-    again = bus.submit(codec.FocusPositionInquiry(), 5.0)
+    again = bus.submit(codec_requests.FocusPositionInquiry(), 5.0)
     answer = [e for e in _run(bus, 6.0) if getattr(e, "ticket", None) == again]
     assert isinstance(answer[0], Answered)
-    assert answer[0].value == codec.FocusPosition(0x3000)
+    assert answer[0].value == codec_replies.FocusPosition(0x3000)
     # 9 bytes out at 9600 baud, one field, 7 bytes back: a paced inquiry takes > 15 ms.
     assert answer[0].t - 5.0 > 16 * 10 / 9600
 
@@ -705,10 +707,10 @@ def test_virtual_bus_survives_a_faulty_device(faults: str) -> None:
     t = 0.0
     events: list[SessionEvent] = []
     for _ in range(40):
-        request: codec.Command | codec.FocusPositionInquiry = (
-            codec.FocusDirect(rng.randint(0x1000, 0x8400))
+        request: codec_requests.Command | codec_requests.FocusPositionInquiry = (
+            codec_requests.FocusDirect(rng.randint(0x1000, 0x8400))
             if rng.random() < 0.5
-            else codec.FocusPositionInquiry()
+            else codec_requests.FocusPositionInquiry()
         )
         tickets.append(bus.submit(request, t))
         t += rng.uniform(0.0, 0.3)
@@ -718,15 +720,15 @@ def test_virtual_bus_survives_a_faulty_device(faults: str) -> None:
     assert sorted(e.ticket for e in finals) == sorted(tickets)  # each ends exactly once
     assert bus.session.pending() == 0
     bus.device.faults = Faults()  # the line is clean again: the next request succeeds exactly
-    target = bus.submit(codec.FocusDirect(0x4000), t + 40)
-    inquiry = bus.submit(codec.FocusPositionInquiry(), t + 40)
+    target = bus.submit(codec_requests.FocusDirect(0x4000), t + 40)
+    inquiry = bus.submit(codec_requests.FocusPositionInquiry(), t + 40)
     events = _run(bus, t + 50)
     done = {e.ticket: e for e in events if _final(e)}
     assert isinstance(done[target], Completed)
     assert getattr(done[inquiry], "value", None) in (
-        codec.FocusPosition(0x4000),
-        *(codec.FocusPosition(c) for c in range(0x1000, 0x8401)),
+        codec_replies.FocusPosition(0x4000),
+        *(codec_replies.FocusPosition(c) for c in range(0x1000, 0x8401)),
     )
-    final_position = bus.submit(codec.FocusPositionInquiry(), t + 50)
+    final_position = bus.submit(codec_requests.FocusPositionInquiry(), t + 50)
     answer = {e.ticket: e for e in _run(bus, t + 51) if _final(e)}[final_position]
-    assert getattr(answer, "value", None) == codec.FocusPosition(0x4000)
+    assert getattr(answer, "value", None) == codec_replies.FocusPosition(0x4000)

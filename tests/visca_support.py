@@ -15,9 +15,10 @@ from drivers.sim.device import DeviceConfig, ViscaDevice
 from drivers.sim.faults import Faults
 from drivers.sim.server import SimCameraServer
 from drivers.sim.state import CameraState
-from drivers.visca import codec
+from drivers.visca import codec_framing
 from drivers.visca.camera import EVI_D100, Camera, CameraProfile
-from drivers.visca.link import LinkTimeouts, ViscaLink
+from drivers.visca.link import ViscaLink
+from drivers.visca.session_types import LinkTimeouts
 
 # Bounds on waits in tests: a reply comes within ~1 field; these only cap a test on a loaded
 # 2-core machine so that a bug fails the test instead of hanging it.
@@ -50,7 +51,7 @@ class ScriptedCamera:
         self._slave: int | None = slave
         self.path = os.ttyname(slave)
         self.received: asyncio.Queue[bytes] = asyncio.Queue()
-        self._reassembler = codec.Reassembler()
+        self._reassembler = codec_framing.Reassembler()
 
     async def __aenter__(self) -> Self:
         assert self._master is not None

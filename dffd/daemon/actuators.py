@@ -24,7 +24,7 @@ from dffd.actuation import (
     report_failed,
     request_for,
 )
-from drivers.visca import codec
+from drivers.visca import codec_requests
 from drivers.visca.errors import ViscaError
 
 if TYPE_CHECKING:
@@ -105,7 +105,9 @@ class Actuators:
 
     async def _send(self, request: ActionRequest) -> object:
         camera = self.camera
-        if isinstance(request, codec.FocusPositionInquiry | codec.PanTiltPositionInquiry):
+        if isinstance(
+            request, codec_requests.FocusPositionInquiry | codec_requests.PanTiltPositionInquiry
+        ):
             return await camera.link.inquire(camera.address, request)
         timeout = completion_timeout_s(request, camera.profile, camera.move_timeout_margin_s)
         await camera.link.command(camera.address, request, completion_timeout=timeout)

@@ -17,7 +17,7 @@ import serial
 
 from drivers.sim.device import FIELD_PERIOD_S, DeviceConfig
 from drivers.sim.server import SimCameraServer
-from drivers.visca import codec
+from drivers.visca import codec, codec_requests
 
 DEFAULT_ROUNDS = 200
 REPLY_TIMEOUT_S = 1.0  # a reply is due within ~1 field plus wire time; this only stops a hang
@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print one line per configuration."""
     args = sys.argv[1:] if argv is None else argv
     rounds = int(args[0]) if args else DEFAULT_ROUNDS
-    request = codec.encode_request(codec.VersionInquiry(), 1)
+    request = codec.encode_request(codec_requests.VersionInquiry(), 1)
     wire_s = (len(request) + 10) * 10 / BAUD
     print(f"field {FIELD_PERIOD_S * 1e3:.2f} ms, wire time of the exchange {wire_s * 1e3:.2f} ms")
     for pace in (False, True):

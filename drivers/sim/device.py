@@ -45,8 +45,9 @@ from drivers.sim.faults import Faults
 from drivers.sim.models import EVI_D100 as SIM_EVI_D100
 from drivers.sim.models import SimModel
 from drivers.sim.state import Axis, CameraState
-from drivers.visca import codec
-from drivers.visca.codec import (
+from drivers.visca import codec, codec_framing, codec_replies, codec_requests
+from drivers.visca.codec_framing import Packet
+from drivers.visca.codec_replies import (
     Ack,
     AddressSetReply,
     BroadcastEcho,
@@ -55,7 +56,6 @@ from drivers.visca.codec import (
     ErrorReply,
     InquiryReply,
     NetworkChange,
-    Packet,
     Reply,
 )
 
@@ -133,12 +133,12 @@ class DeviceConfig:
     sockets: int = 2
 
     def __post_init__(self) -> None:
-        codec.check_range("address", self.address, 1, 7)
+        codec_framing.check_range("address", self.address, 1, 7)
         if self.baud <= 0 or self.field_period_s <= 0:
             raise ValueError("baud and field_period_s must be positive")
         if self.focus_speed_counts_s <= 0 or self.zoom_speed_counts_s <= 0:
             raise ValueError("focus and zoom speeds must be positive (counts per second)")
-        codec.check_range("focus_drive_standard", self.focus_drive_standard, 0, 7)
+        codec_framing.check_range("focus_drive_standard", self.focus_drive_standard, 0, 7)
         if self.power_on_s < 0:
             raise ValueError("power_on_s must not be negative")
 
@@ -202,7 +202,7 @@ class ViscaDevice:
         self._alive = False  # powered (has a supply): False before power_up and during a cycle
         self._silent = False
         self._connected = True  # the port exists (False while "unplugged")
-        self._reassembler = codec.Reassembler(max_packet_len=RX_REASSEMBLY_CAP)
+        self._reassembler = codec_framing.Reassembler(max_packet_len=RX_REASSEMBLY_CAP)
         self._rx_wire: deque[tuple[float, bytes]] = deque()
         self._rx_wire_bytes = 0
         self._rx_free_at = -math.inf
@@ -212,7 +212,7 @@ class ViscaDevice:
         self._tx_free_at = -math.inf
         self._events: list[tuple[float, int, Callable[[float], None]]] = []
         self._seq = itertools.count()
-        self._sockets: dict[int, _Running | None] = dict.fromkeys(codec.SOCKETS)
+        self._sockets: dict[int, _Running | None] = dict.fromkeys(codec_framing.SOCKETS)
         self._token = itertools.count(1)
         self._epoch = 0  # bumped by a power cycle: events of the old life are void
 
@@ -383,7 +383,7 @@ class ViscaDevice:
         logger.info("sim camera %d: power lost at %.3f", self._address, t)
 
     def _reset_protocol(self) -> None:
-        self._sockets = dict.fromkeys(codec.SOCKETS)
+        self._sockets = dict.fromkeys(codec_framing.SOCKETS)
         self._inbox.clear()
         self._reassembler.clear()
         self._events.clear()
@@ -407,23 +407,23 @@ class ViscaDevice:
         header = raw[0]
         receiver = header & 0x0F
         sender = (header >> 4) & 0x07
-        if sender != codec.CONTROLLER_ADDRESS or receiver not in (
+        if sender != codec_framing.CONTROLLER_ADDRESS or receiver not in (
             self._address,
-            codec.BROADCAST_ADDRESS,
+            codec_framing.BROADCAST_ADDRESS,
         ):
             self.stats.ignored += 1
             return
-        if len(raw) > codec.MAX_PACKET_LEN:
+        if len(raw) > codec_framing.MAX_PACKET_LEN:
             self._send(ErrorReply(0, ErrorCode.MESSAGE_LENGTH), t)
             return
-        if len(raw) == 3 and raw[1] >> 4 == 0x2 and raw[1] & 0x0F not in codec.SOCKETS:
+        if len(raw) == 3 and raw[1] >> 4 == 0x2 and raw[1] & 0x0F not in codec_framing.SOCKETS:
             # Cancel of a socket this camera does not have: "no socket" for that socket number
             # (z0 6y 05 FF), as the VISCA spec answers it, not a syntax error.
             self._send(ErrorReply(raw[1] & 0x0F, ErrorCode.NO_SOCKET), t)
             return
         try:
             packet = Packet.from_bytes(raw)
-            if receiver == codec.BROADCAST_ADDRESS and _is_address_set(packet.message):
+            if receiver == codec_framing.BROADCAST_ADDRESS and _is_address_set(packet.message):
                 self._address_set(packet.message[1], t)
                 return
             request = codec.decode_request(packet)
@@ -435,27 +435,28 @@ class ViscaDevice:
         logger.debug("sim camera %d: %s at %.4f", self._address, request, t)
         self._dispatch(request, t)
 
-    def _dispatch(self, request: codec.Request, t: float) -> None:
+    def _dispatch(self, request: codec_requests.Request, t: float) -> None:
         match request:
-            case codec.IFClearBroadcast():
+            case codec_requests.IFClearBroadcast():
                 self._clear_sockets(t)
                 if self.config.echo_if_clear_broadcast:
                     self._send(BroadcastEcho(request.to_message()), t)
-            case codec.IFClear():
+            case codec_requests.IFClear():
                 self._clear_sockets(t)
                 self._send(InquiryReply(b""), t)
-            case codec.AddressSet():  # normally handled before decoding; kept for completeness
+            # normally handled before decoding; kept for completeness
+            case codec_requests.AddressSet():
                 self._address_set(0x01, t)
-            case codec.Cancel():
+            case codec_requests.Cancel():
                 self._cancel(request.socket, t)
             case (
-                codec.FocusPositionInquiry()
-                | codec.ZoomPositionInquiry()
-                | codec.FocusModeInquiry()
-                | codec.PowerInquiry()
-                | codec.PanTiltPositionInquiry()
-                | codec.PanTiltMaxSpeedInquiry()
-                | codec.VersionInquiry()
+                codec_requests.FocusPositionInquiry()
+                | codec_requests.ZoomPositionInquiry()
+                | codec_requests.FocusModeInquiry()
+                | codec_requests.PowerInquiry()
+                | codec_requests.PanTiltPositionInquiry()
+                | codec_requests.PanTiltMaxSpeedInquiry()
+                | codec_requests.VersionInquiry()
             ):
                 self._send(InquiryReply(self._inquiry_data(request, t)), t)
             case _:
@@ -465,7 +466,7 @@ class ViscaDevice:
 
     def _address_set(self, given: int, t: float) -> None:
         # The cameras before this one in the chain took given … given + address − 2.
-        mine = min(given + self.config.address - 1, codec.MAX_CAMERA_ADDRESS)
+        mine = min(given + self.config.address - 1, codec_framing.MAX_CAMERA_ADDRESS)
         self._address = mine
         self._send(AddressSetReply(next_address=mine + 1), t)
 
@@ -485,46 +486,50 @@ class ViscaDevice:
         self._sockets[socket] = None
         self._send(ErrorReply(socket, ErrorCode.CANCELLED), t)
 
-    def _inquiry_data(self, request: codec.Request, t: float) -> bytes:
+    def _inquiry_data(self, request: codec_requests.Request, t: float) -> bytes:
         st = self.state
         with st.lock:
             match request:
-                case codec.FocusPositionInquiry():
-                    return codec.FocusPosition(round(st.focus.position(t))).to_data()
-                case codec.ZoomPositionInquiry():
-                    return codec.ZoomPosition(round(st.zoom.position(t))).to_data()
-                case codec.FocusModeInquiry():
-                    return codec.FocusModeState(auto=st.autofocus).to_data()
-                case codec.PowerInquiry():
-                    return codec.PowerState(on=st.powered).to_data()
-                case codec.PanTiltPositionInquiry():
-                    return codec.PanTiltPosition(
+                case codec_requests.FocusPositionInquiry():
+                    return codec_replies.FocusPosition(round(st.focus.position(t))).to_data()
+                case codec_requests.ZoomPositionInquiry():
+                    return codec_replies.ZoomPosition(round(st.zoom.position(t))).to_data()
+                case codec_requests.FocusModeInquiry():
+                    return codec_replies.FocusModeState(auto=st.autofocus).to_data()
+                case codec_requests.PowerInquiry():
+                    return codec_replies.PowerState(on=st.powered).to_data()
+                case codec_requests.PanTiltPositionInquiry():
+                    return codec_replies.PanTiltPosition(
                         pan=round(st.pan.position(t) * self.camera.pan_counts_per_deg),
                         tilt=round(st.tilt.position(t) * self.camera.tilt_counts_per_deg),
                     ).to_data()
-                case codec.PanTiltMaxSpeedInquiry():
+                case codec_requests.PanTiltMaxSpeedInquiry():
                     cam = self.camera
-                    return codec.PanTiltMaxSpeed(
+                    return codec_replies.PanTiltMaxSpeed(
                         cam.max_pan_speed_code, cam.max_tilt_speed_code
                     ).to_data()
-                case codec.VersionInquiry():
+                case codec_requests.VersionInquiry():
                     cfg = self.config
                     vendor = self.camera.vendor if cfg.vendor is None else cfg.vendor
                     model = self.camera.model if cfg.model is None else cfg.model
-                    return codec.Version(vendor, model, cfg.rom, cfg.sockets).to_data()
+                    return codec_replies.Version(vendor, model, cfg.rom, cfg.sockets).to_data()
         raise AssertionError(f"not an inquiry: {request!r}")
 
-    def _command(self, request: codec.Request, t: float) -> None:
+    def _command(self, request: codec_requests.Request, t: float) -> None:
         free = [s for s, running in self._sockets.items() if running is None]
         if not free:
             self._send(ErrorReply(0, ErrorCode.BUFFER_FULL), t)
             return
         socket = free[0]
         st = self.state
-        if not st.powered and not isinstance(request, codec.CamPower):
+        if not st.powered and not isinstance(request, codec_requests.CamPower):
             self._send(ErrorReply(socket, ErrorCode.NOT_EXECUTABLE), t)
             return
-        manual_focus = (codec.FocusDrive, codec.FocusDirect, codec.FocusOnePush)
+        manual_focus = (
+            codec_requests.FocusDrive,
+            codec_requests.FocusDirect,
+            codec_requests.FocusOnePush,
+        )
         if st.autofocus and isinstance(request, manual_focus):
             self._send(ErrorReply(socket, ErrorCode.NOT_EXECUTABLE), t)
             return
@@ -542,12 +547,12 @@ class ViscaDevice:
         finish_field = max(t, math.ceil(finish / period - 1e-9) * period)
         self._schedule(finish_field, lambda at: self._finish(socket, token, at))
 
-    def _execute(self, request: codec.Request, t: float) -> _Started | None:
+    def _execute(self, request: codec_requests.Request, t: float) -> _Started | None:
         """Start the physical effect; return (group, end time, final positions) or None."""
         st = self.state
         cfg = self.config
         match request:
-            case codec.CamPower(on=on):
+            case codec_requests.CamPower(on=on):
                 self._supersede("power", t)
                 if on and not st.powered:
                     return "power", t + cfg.power_on_s, ()
@@ -557,45 +562,45 @@ class ViscaDevice:
                         self._stop_group(group, t)
                     st.powered = False
                 return None
-            case codec.FocusMode(auto=auto):
+            case codec_requests.FocusMode(auto=auto):
                 if auto:
                     self._supersede("focus", t)
                     self._stop_group("focus", t)
                 st.autofocus = auto
                 return None
-            case codec.FocusDrive(direction=direction, speed=speed):
+            case codec_requests.FocusDrive(direction=direction, speed=speed):
                 self._supersede("focus", t)
-                if direction is codec.FocusDirection.STOP:
+                if direction is codec_requests.FocusDirection.STOP:
                     st.focus.stop(t)
                 else:
                     p = cfg.focus_drive_standard if speed is None else speed
-                    sign = -1 if direction is codec.FocusDirection.FAR else 1
+                    sign = -1 if direction is codec_requests.FocusDirection.FAR else 1
                     st.focus.drive(sign, cfg.focus_drive_speed(p), t)
                 return None
-            case codec.FocusDirect(counts=counts):
+            case codec_requests.FocusDirect(counts=counts):
                 self._supersede("focus", t)
                 end = st.focus.move_to(counts, cfg.focus_speed_counts_s, t)
                 return "focus", end, ((st.focus, counts),)
-            case codec.FocusOnePush():
+            case codec_requests.FocusOnePush():
                 self._supersede("focus", t)
                 here = st.focus.position(t)
                 target = here if self.focus_oracle is None else self.focus_oracle(t)
                 target = _clamp(st.focus, target)
                 end = st.focus.move_to(target, cfg.focus_speed_counts_s, t)
                 return "focus", end, ((st.focus, target),)
-            case codec.ZoomDirect(counts=counts):
+            case codec_requests.ZoomDirect(counts=counts):
                 self._supersede("zoom", t)
                 end = st.zoom.move_to(counts, cfg.zoom_speed_counts_s, t)
                 return "zoom", end, ((st.zoom, counts),)
-            case codec.PanTiltDrive():
+            case codec_requests.PanTiltDrive():
                 self._supersede("pantilt", t)
                 _drive(st, request, t, self.camera)
                 return None
-            case codec.PanTiltAbsolute() | codec.PanTiltRelative():
+            case codec_requests.PanTiltAbsolute() | codec_requests.PanTiltRelative():
                 self._supersede("pantilt", t)
                 pan_deg = request.pan / self.camera.pan_counts_per_deg
                 tilt_deg = request.tilt / self.camera.tilt_counts_per_deg
-                if isinstance(request, codec.PanTiltRelative):
+                if isinstance(request, codec_requests.PanTiltRelative):
                     pan_deg = _clamp(st.pan, pan_deg + st.pan.position(t))
                     tilt_deg = _clamp(st.tilt, tilt_deg + st.tilt.position(t))
                 end = max(
@@ -603,10 +608,10 @@ class ViscaDevice:
                     st.tilt.move_to(tilt_deg, _tilt_speed(self.camera, request.tilt_speed), t),
                 )
                 return "pantilt", end, ((st.pan, pan_deg), (st.tilt, tilt_deg))
-            case codec.PanTiltHome():
+            case codec_requests.PanTiltHome():
                 self._supersede("pantilt", t)
                 return "pantilt", _move_pan_tilt(st, 0.0, 0.0, t, self.camera), _home(st)
-            case codec.PanTiltReset():
+            case codec_requests.PanTiltReset():
                 # Runs to the lower end stops, then home, at full speed.
                 self._supersede("pantilt", t)
                 leg = _move_pan_tilt(st, st.pan.low, st.tilt.low, t, self.camera)
@@ -725,7 +730,7 @@ def _clamp(axis: Axis, value: float) -> float:
 
 def speed_deg_s(code: int) -> float:
     """Pan/tilt speed in degrees per second for speed code 01…18."""
-    codec.check_range("speed code", code, 1, len(SPEED_TABLE_DEG_S))
+    codec_framing.check_range("speed code", code, 1, len(SPEED_TABLE_DEG_S))
     return SPEED_TABLE_DEG_S[code - 1]
 
 
@@ -735,47 +740,51 @@ def _is_address_set(message: bytes) -> bool:
     return len(message) == 2 and message[0] == 0x30 and 1 <= message[1] <= 7
 
 
-def _check_model_ranges(request: codec.Request, cam: SimModel) -> None:
+def _check_model_ranges(request: codec_requests.Request, cam: SimModel) -> None:
     """Raise ValueError for arguments the wire format allows but the camera model does not."""
     pan_codes, tilt_codes = cam.max_pan_speed_code, cam.max_tilt_speed_code
     match request:
-        case codec.FocusDirect(counts=counts):
-            codec.check_range("focus counts", counts, *cam.focus_range)
-        case codec.ZoomDirect(counts=counts):
-            codec.check_range("zoom counts", counts, *cam.zoom_range)
-        case codec.PanTiltDrive(pan_speed=pan_speed, tilt_speed=tilt_speed):
-            codec.check_range("pan speed", pan_speed, 1, pan_codes)
-            codec.check_range("tilt speed", tilt_speed, 1, tilt_codes)
-        case codec.PanTiltAbsolute():
-            codec.check_range("pan speed", request.pan_speed, 1, pan_codes)
-            codec.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
-            codec.check_range("pan position", request.pan, *cam.pan_limit_counts)
-            codec.check_range("tilt position", request.tilt, *cam.tilt_limit_counts)
-        case codec.PanTiltRelative():
-            codec.check_range("pan speed", request.pan_speed, 1, pan_codes)
-            codec.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
+        case codec_requests.FocusDirect(counts=counts):
+            codec_framing.check_range("focus counts", counts, *cam.focus_range)
+        case codec_requests.ZoomDirect(counts=counts):
+            codec_framing.check_range("zoom counts", counts, *cam.zoom_range)
+        case codec_requests.PanTiltDrive(pan_speed=pan_speed, tilt_speed=tilt_speed):
+            codec_framing.check_range("pan speed", pan_speed, 1, pan_codes)
+            codec_framing.check_range("tilt speed", tilt_speed, 1, tilt_codes)
+        case codec_requests.PanTiltAbsolute():
+            codec_framing.check_range("pan speed", request.pan_speed, 1, pan_codes)
+            codec_framing.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
+            codec_framing.check_range("pan position", request.pan, *cam.pan_limit_counts)
+            codec_framing.check_range("tilt position", request.tilt, *cam.tilt_limit_counts)
+        case codec_requests.PanTiltRelative():
+            codec_framing.check_range("pan speed", request.pan_speed, 1, pan_codes)
+            codec_framing.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
             pan_low, pan_high = cam.pan_limit_counts
             tilt_low, tilt_high = cam.tilt_limit_counts
             span_pan, span_tilt = pan_high - pan_low, tilt_high - tilt_low
-            codec.check_range("pan offset", request.pan, -span_pan, span_pan)
-            codec.check_range("tilt offset", request.tilt, -span_tilt, span_tilt)
+            codec_framing.check_range("pan offset", request.pan, -span_pan, span_pan)
+            codec_framing.check_range("tilt offset", request.tilt, -span_tilt, span_tilt)
         case _:
             pass
 
 
 def _pan_speed(cam: SimModel, code: int) -> float:
-    codec.check_range("pan speed code", code, 1, cam.max_pan_speed_code)
+    codec_framing.check_range("pan speed code", code, 1, cam.max_pan_speed_code)
     return cam.pan_speeds_deg_s[code - 1]
 
 
 def _tilt_speed(cam: SimModel, code: int) -> float:
-    codec.check_range("tilt speed code", code, 1, cam.max_tilt_speed_code)
+    codec_framing.check_range("tilt speed code", code, 1, cam.max_tilt_speed_code)
     return cam.tilt_speeds_deg_s[code - 1]
 
 
-def _drive(st: CameraState, request: codec.PanTiltDrive, t: float, cam: SimModel) -> None:
-    pan_dir = {codec.PanDirection.LEFT: -1, codec.PanDirection.RIGHT: 1}.get(request.pan)
-    tilt_dir = {codec.TiltDirection.DOWN: -1, codec.TiltDirection.UP: 1}.get(request.tilt)
+def _drive(st: CameraState, request: codec_requests.PanTiltDrive, t: float, cam: SimModel) -> None:
+    pan_dir = {codec_requests.PanDirection.LEFT: -1, codec_requests.PanDirection.RIGHT: 1}.get(
+        request.pan
+    )
+    tilt_dir = {codec_requests.TiltDirection.DOWN: -1, codec_requests.TiltDirection.UP: 1}.get(
+        request.tilt
+    )
     if pan_dir is None:
         st.pan.stop(t)
     else:

@@ -29,7 +29,7 @@ from typing import Self
 from drivers.sim.device import DeviceConfig, Emission, VirtualClock, ViscaDevice
 from drivers.sim.faults import Faults, FaultSpec
 from drivers.sim.state import CameraState
-from drivers.visca import codec
+from drivers.visca import codec, codec_framing, codec_requests
 
 logger = logging.getLogger(__name__)
 
@@ -358,7 +358,7 @@ class InProcessCamera:
         """Current virtual time."""
         return self.clock()
 
-    def send(self, data: bytes | codec.Request) -> None:
+    def send(self, data: bytes | codec_requests.Request) -> None:
         """The controller writes ``data`` (raw bytes, or a request for the current address)."""
         if not isinstance(data, bytes | bytearray):
             data = codec.encode_request(data, self.device.address)
@@ -386,7 +386,9 @@ class InProcessCamera:
         self.output.extend(batch)
         return sent
 
-    def exchange(self, data: bytes | codec.Request, within_s: float = 0.1) -> list[Emission]:
+    def exchange(
+        self, data: bytes | codec_requests.Request, within_s: float = 0.1
+    ) -> list[Emission]:
         """Send ``data`` and collect everything sent back in the next ``within_s`` seconds."""
         self.send(data)
         return self.run_for(within_s)
@@ -418,7 +420,7 @@ class InProcessCamera:
 
 def packets(emissions: list[Emission]) -> list[bytes]:
     """Split emissions into raw packets (garbage dropped), for tests."""
-    reassembler = codec.Reassembler()
+    reassembler = codec_framing.Reassembler()
     out: list[bytes] = []
     for emission in emissions:
         out += reassembler.feed(emission.data)

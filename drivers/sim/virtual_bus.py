@@ -16,8 +16,9 @@ opens — and still reported, so the caller can forget what the camera lost.
 from __future__ import annotations
 
 from drivers.sim.device import ViscaDevice
-from drivers.visca.codec import AddressSet, IFClearBroadcast
-from drivers.visca.session import (
+from drivers.visca.codec_requests import AddressSet, IFClearBroadcast
+from drivers.visca.session import ViscaSession
+from drivers.visca.session_types import (
     Answered,
     Failed,
     LinkTimeouts,
@@ -25,7 +26,6 @@ from drivers.visca.session import (
     SessionEvent,
     SessionRequest,
     SessionStats,
-    ViscaSession,
 )
 
 

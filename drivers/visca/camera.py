@@ -18,7 +18,9 @@ import math
 from collections.abc import Awaitable, Callable
 from typing import Literal, TypeVar
 
-from drivers.visca.codec import (
+from drivers.visca.codec_framing import check_range
+from drivers.visca.codec_replies import Version
+from drivers.visca.codec_requests import (
     CamPower,
     Command,
     FocusDirect,
@@ -36,11 +38,9 @@ from drivers.visca.codec import (
     PanTiltRelative,
     PowerInquiry,
     TiltDirection,
-    Version,
     VersionInquiry,
     ZoomDirect,
     ZoomPositionInquiry,
-    check_range,
 )
 from drivers.visca.errors import (
     ViscaError,
@@ -49,7 +49,7 @@ from drivers.visca.errors import (
     ViscaSyntaxError,
     ViscaTimeoutError,
 )
-from drivers.visca.link import CommandHandle, LinkApi
+from drivers.visca.link_api import CommandHandle, LinkApi
 from drivers.visca.profiles import (
     EVI_D70,
     EVI_D100,
@@ -62,7 +62,7 @@ from drivers.visca.profiles import (
     profile_for,
     profile_for_version,
 )
-from drivers.visca.session import FIELD_S, POWER_COMPLETION_TIMEOUT_S
+from drivers.visca.session_types import FIELD_S, POWER_COMPLETION_TIMEOUT_S
 
 logger = logging.getLogger(__name__)
 

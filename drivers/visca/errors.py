@@ -7,7 +7,7 @@ and the socket so callers can branch on them (``except ViscaNotExecutableError``
 
 from __future__ import annotations
 
-from drivers.visca.codec import ErrorCode
+from drivers.visca.codec_replies import ErrorCode
 
 
 class ViscaError(Exception):

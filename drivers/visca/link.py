@@ -9,9 +9,18 @@ rules). The link adds what needs I/O and a clock:
   anything is written;
 * ONE timer, armed at the session's next deadline;
 * re-initialisation after a Network Change or a reconnect: Address Set + IF_Clear, then every
-  *re-initialisation step* (:meth:`ViscaLink.add_reinit_step`) with a :class:`ReinitLink` — the
-  explicit pass through the session's closed gate — then the plain callbacks
-  (:meth:`ViscaLink.add_reinit_callback`) once the gate is open again.
+  *re-initialisation step* (:meth:`ViscaLink.add_reinit_step`) with a
+  :class:`~drivers.visca.link_api.ReinitLink` — the explicit pass through the session's closed
+  gate — then the plain callbacks (:meth:`ViscaLink.add_reinit_callback`) once the gate is open
+  again.
+
+What callers hold of a link (:class:`~drivers.visca.link_api.LinkApi`, the
+:class:`~drivers.visca.link_api.CommandHandle` of a command, the ``ReinitLink``, the
+:class:`~drivers.visca.link_api.LinkHealth` snapshot) was split into :mod:`drivers.visca.link_api`,
+and the choice of transport by URL into :mod:`drivers.visca.transport`. What is left is the one
+class :class:`ViscaLink` (~525 lines) and its private helpers, a little past ~600 lines: its
+transport, timer, waiters, reconnect and re-initialisation share the transport generation, the
+session's gate and the table of waiters, and are one object.
 """
 
 from __future__ import annotations
@@ -20,21 +29,19 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Coroutine
 from dataclasses import dataclass, fields
-from typing import Any, Protocol, TypeVar, cast
+from typing import Any, cast
 
-from drivers.visca.codec import (
+from drivers.visca.codec_framing import check_range
+from drivers.visca.codec_replies import AddressSetReply, Reply
+from drivers.visca.codec_requests import (
     AddressSet,
-    AddressSetReply,
     Broadcast,
     Cancel,
     Command,
     IFClear,
     IFClearBroadcast,
-    InquiryData,
-    Reply,
-    check_range,
 )
 from drivers.visca.errors import (
     LinkDownError,
@@ -42,30 +49,18 @@ from drivers.visca.errors import (
     ViscaTimeoutError,
 )
 from drivers.visca.ip import IpStats
-from drivers.visca.session import (
-    ACK_TIMEOUT_S,
-    BROADCAST_TIMEOUT_S,
-    BUFFER_FULL_BACKOFF_S,
-    BUFFER_FULL_RETRIES,
-    CANCEL_TIMEOUT_S,
-    COMMAND_QUEUE_MAX,
-    DRIVE_COMPLETION_TIMEOUT_S,
-    FIELD_S,
-    FOCUS_DIRECT_COMPLETION_TIMEOUT_S,
-    HOME_COMPLETION_TIMEOUT_S,
-    INQUIRY_QUEUE_MAX,
-    INQUIRY_TIMEOUT_S,
-    LATE_REPLY_GUARD_S,
-    ONE_PUSH_AF_COMPLETION_TIMEOUT_S,
-    PAN_TILT_MOVE_COMPLETION_TIMEOUT_S,
-    POWER_COMPLETION_TIMEOUT_S,
-    QUEUE_TIMEOUT_S,
-    RECONNECT_INITIAL_S,
-    RECONNECT_MAX_S,
-    REINIT_TIMEOUT_S,
-    RESET_COMPLETION_TIMEOUT_S,
+from drivers.visca.link_api import (
+    AnswerT,
+    CommandHandle,
+    InquiryLike,
+    LinkHealth,
+    ReinitCallback,
+    ReinitLink,
+    ReinitStep,
+)
+from drivers.visca.session import ViscaSession
+from drivers.visca.session_types import (
     SOCKETS_PER_CAMERA,
-    ZOOM_DIRECT_COMPLETION_TIMEOUT_S,
     Acked,
     Answered,
     Completed,
@@ -73,193 +68,20 @@ from drivers.visca.session import (
     LinkTimeouts,
     NetworkChanged,
     SessionEvent,
-    ViscaSession,
-    is_stop,
 )
 from drivers.visca.transport import (
-    READ_POLL_S,
-    WRITE_TIMEOUT_S,
     PortFactory,
-    SerialPortLike,
     Transport,
     TransportFactory,
+    factory_for_url,
+    open_failure_message,
     open_serial_port,
-    serial_factory,
-    tcp_factory,
-    udp_factory,
 )
-from drivers.visca.url import parse_camera_url
-
-__all__ = [
-    "ACK_TIMEOUT_S",
-    "BROADCAST_TIMEOUT_S",
-    "BUFFER_FULL_BACKOFF_S",
-    "BUFFER_FULL_RETRIES",
-    "CANCEL_TIMEOUT_S",
-    "COMMAND_QUEUE_MAX",
-    "DRIVE_COMPLETION_TIMEOUT_S",
-    "FIELD_S",
-    "FOCUS_DIRECT_COMPLETION_TIMEOUT_S",
-    "HOME_COMPLETION_TIMEOUT_S",
-    "INQUIRY_QUEUE_MAX",
-    "INQUIRY_TIMEOUT_S",
-    "LATE_REPLY_GUARD_S",
-    "ONE_PUSH_AF_COMPLETION_TIMEOUT_S",
-    "PAN_TILT_MOVE_COMPLETION_TIMEOUT_S",
-    "POWER_COMPLETION_TIMEOUT_S",
-    "QUEUE_TIMEOUT_S",
-    "READ_POLL_S",
-    "RECONNECT_INITIAL_S",
-    "RECONNECT_MAX_S",
-    "REINIT_TIMEOUT_S",
-    "RESET_COMPLETION_TIMEOUT_S",
-    "SOCKETS_PER_CAMERA",
-    "TRACE",
-    "WRITE_TIMEOUT_S",
-    "ZOOM_DIRECT_COMPLETION_TIMEOUT_S",
-    "CommandHandle",
-    "InquiryLike",
-    "LinkApi",
-    "LinkHealth",
-    "LinkTimeouts",
-    "PortFactory",
-    "ReinitCallback",
-    "ReinitLink",
-    "ReinitStep",
-    "SerialPortLike",
-    "ViscaLink",
-    "is_stop",
-    "open_serial_port",
-]
 
 logger = logging.getLogger(__name__)
 
 TRACE = 5  # raw bytes on the wire; below DEBUG (parsed packets)
 logging.addLevelName(TRACE, "TRACE")
-
-
-@dataclass(frozen=True, slots=True)
-class LinkHealth:
-    """A snapshot of the link's counters (all monotonic since the link was created)."""
-
-    url: str
-    connected: bool
-    bytes_in: int
-    bytes_out: int
-    packets_in: int
-    packets_out: int
-    replies: dict[str, int]
-    errors_by_code: dict[int, int]
-    timeouts: dict[str, int]
-    dropped_bytes: int
-    bad_packets: int
-    stray_replies: int
-    lost_completions: int
-    resyncs: int
-    buffer_full_retries: int
-    network_changes: int
-    reconnects: int
-    port_failures: int
-    last_reply_monotonic: float | None
-    chain_length: int | None
-    ip: IpStats | None = None  # VISCA over IP channel counters (None on serial and TCP)
-
-
-AnswerT_co = TypeVar("AnswerT_co", bound=InquiryData, covariant=True)
-AnswerT = TypeVar("AnswerT", bound=InquiryData)
-
-
-class InquiryLike(Protocol[AnswerT_co]):
-    """An inquiry of the codec: ``to_message`` frames it, ``parse_reply`` types its answer."""
-
-    def to_message(self) -> bytes: ...
-
-    def parse_reply(self, data: bytes) -> AnswerT_co: ...
-
-
-ReinitCallback = Callable[[], Awaitable[None]]
-
-
-class LinkApi(Protocol):
-    """What the camera API needs of a link (:class:`ViscaLink` or a :class:`ReinitLink`)."""
-
-    @property
-    def url(self) -> str: ...
-
-    def submit(
-        self,
-        address: int,
-        command: Command,
-        *,
-        priority: bool | None = None,
-        completion_timeout: float | None = None,
-    ) -> CommandHandle: ...
-
-    async def command(
-        self,
-        address: int,
-        command: Command,
-        *,
-        priority: bool | None = None,
-        completion_timeout: float | None = None,
-    ) -> None: ...
-
-    async def inquire(self, address: int, inquiry: InquiryLike[AnswerT]) -> AnswerT: ...
-
-    async def cancel(self, address: int, socket: int) -> bool: ...
-
-    async def ensure_addressed(self, *, force: bool = False) -> int: ...
-
-    def set_max_sockets(self, address: int, sockets: int) -> None: ...
-
-    def running(self, address: int) -> dict[int, Command]: ...
-
-    def completion_inferred(self, handle: CommandHandle) -> bool: ...
-
-    def add_reinit_callback(self, callback: ReinitCallback) -> None: ...
-
-    def add_reinit_step(self, step: ReinitStep) -> None: ...
-
-
-ReinitStep = Callable[[LinkApi], Awaitable[None]]
-
-
-class CommandHandle:
-    """A command submitted to the link: await its ACK (socket) and its Completion separately."""
-
-    def __init__(self, link: ViscaLink, waiter: _Waiter, request: Command, address: int) -> None:
-        self._link = link
-        self._waiter = waiter
-        self._request = request
-        self._address = address
-
-    @property
-    def request(self) -> Command:
-        """The command."""
-        return self._request
-
-    @property
-    def address(self) -> int:
-        """The camera address."""
-        return self._address
-
-    @property
-    def socket(self) -> int | None:
-        """The socket the camera put the command in (None before its ACK)."""
-        return self._waiter.socket
-
-    def done(self) -> bool:
-        """True once the command completed or failed."""
-        return self._waiter.result.done()
-
-    async def acked(self) -> int:
-        """Wait for the ACK and return the socket; raise the command's error if it failed."""
-        assert self._waiter.acked is not None
-        return cast(int, await self._link._await(self._waiter, self._waiter.acked))
-
-    async def completed(self) -> None:
-        """Wait for the Completion; raise ViscaErrorReply/ViscaTimeoutError/LinkDownError."""
-        await self._link._await(self._waiter, self._waiter.result)
 
 
 class ViscaLink:
@@ -277,7 +99,7 @@ class ViscaLink:
         self.url = url
         self.baudrate = baudrate
         self.timeouts = timeouts or LinkTimeouts()
-        self._transport_factory = transport_factory or _factory_for(url, baudrate, port_factory)
+        self._transport_factory = transport_factory or factory_for_url(url, baudrate, port_factory)
         self._transport: Transport | None = None
         self._ip_totals: IpStats | None = None  # IP counters of closed connections
         self._generation = 0  # bumps on every (re)open: callbacks of an old transport are void
@@ -308,7 +130,7 @@ class ViscaLink:
         try:
             await self._connect()
         except (OSError, ValueError) as exc:
-            raise LinkDownError(_open_failure(self.url, self.baudrate, exc)) from exc
+            raise LinkDownError(open_failure_message(self.url, self.baudrate, exc)) from exc
 
     async def close(self) -> None:
         """Stop background tasks, fail every waiter with LinkDownError, close the transport."""
@@ -788,75 +610,6 @@ class ViscaLink:
             logger.error("VISCA link task %s failed", task.get_name(), exc_info=task.exception())
 
 
-class ReinitLink:
-    """The link as a re-initialisation step sees it: its requests pass the closed gate."""
-
-    def __init__(self, link: ViscaLink) -> None:
-        self._link = link
-
-    @property
-    def url(self) -> str:
-        """The link's URL."""
-        return self._link.url
-
-    def submit(
-        self,
-        address: int,
-        command: Command,
-        *,
-        priority: bool | None = None,
-        completion_timeout: float | None = None,
-    ) -> CommandHandle:
-        """:meth:`ViscaLink.submit`, through the gate."""
-        return self._link._submit(address, command, priority, completion_timeout, privileged=True)
-
-    async def command(
-        self,
-        address: int,
-        command: Command,
-        *,
-        priority: bool | None = None,
-        completion_timeout: float | None = None,
-    ) -> None:
-        """:meth:`ViscaLink.command`, through the gate."""
-        handle = self.submit(
-            address, command, priority=priority, completion_timeout=completion_timeout
-        )
-        await handle.completed()
-
-    async def inquire(self, address: int, inquiry: InquiryLike[AnswerT]) -> AnswerT:
-        """:meth:`ViscaLink.inquire`, through the gate."""
-        return await self._link._inquire(address, inquiry, privileged=True)
-
-    async def cancel(self, address: int, socket: int) -> bool:
-        """:meth:`ViscaLink.cancel` (Cancels are never held)."""
-        return await self._link.cancel(address, socket)
-
-    async def ensure_addressed(self, *, force: bool = False) -> int:
-        """:meth:`ViscaLink.ensure_addressed` (broadcasts are never held)."""
-        return await self._link.ensure_addressed(force=force)
-
-    def set_max_sockets(self, address: int, sockets: int) -> None:
-        """:meth:`ViscaLink.set_max_sockets`."""
-        self._link.set_max_sockets(address, sockets)
-
-    def running(self, address: int) -> dict[int, Command]:
-        """:meth:`ViscaLink.running`."""
-        return self._link.running(address)
-
-    def completion_inferred(self, handle: CommandHandle) -> bool:
-        """:meth:`ViscaLink.completion_inferred`."""
-        return self._link.completion_inferred(handle)
-
-    def add_reinit_callback(self, callback: ReinitCallback) -> None:
-        """:meth:`ViscaLink.add_reinit_callback`."""
-        self._link.add_reinit_callback(callback)
-
-    def add_reinit_step(self, step: ReinitStep) -> None:
-        """:meth:`ViscaLink.add_reinit_step`."""
-        self._link.add_reinit_step(step)
-
-
 # --------------------------------------------------------------------------------------------
 # Private helpers
 # --------------------------------------------------------------------------------------------
@@ -880,18 +633,6 @@ class _Waiter:
             self.acked.cancel()
 
 
-def _factory_for(url: str, baudrate: int, port_factory: PortFactory) -> TransportFactory:
-    """The transport ``url`` names (see drivers.visca.url); ValueError for a bad URL."""
-    parsed = parse_camera_url(url)
-    if parsed.transport == "tcp":
-        assert parsed.port is not None
-        return tcp_factory(parsed.target, parsed.port)
-    if parsed.transport == "visca-ip":
-        assert parsed.port is not None
-        return udp_factory(parsed.target, parsed.port)
-    return serial_factory(parsed.target, parsed.baudrate or baudrate, port_factory)
-
-
 def _consume(fut: asyncio.Future[Any]) -> None:
     """Mark a future's exception retrieved: the link owns these futures, callers may not wait."""
     if not fut.cancelled():
@@ -911,21 +652,3 @@ def _fail(fut: asyncio.Future[Any], error: BaseException) -> None:
 def _add_ip_stats(a: IpStats, b: IpStats) -> IpStats:
     """Field-wise sum of two channels' counters."""
     return IpStats(**{f.name: getattr(a, f.name) + getattr(b, f.name) for f in fields(IpStats)})
-
-
-def _open_failure(url: str, baudrate: int, exc: BaseException) -> str:
-    """What went wrong opening ``url`` and what to check: the device for a serial port (the
-    dialout group grants access to it), the camera's address and network for VISCA over IP."""
-    try:
-        parsed = parse_camera_url(url)
-    except ValueError:
-        return f"cannot open VISCA port {url!r}: {exc}"
-    if parsed.transport == "serial":
-        return (
-            f"cannot open VISCA port {url!r} at {baudrate} baud: {exc}; check that the device "
-            "exists, is not in use, and that you may open it (dialout group)"
-        )
-    return (
-        f"cannot connect to the VISCA camera at {url!r} ({parsed.transport}): {exc}; check that "
-        "the camera is on, its address and port are right, and the network reaches it"
-    )

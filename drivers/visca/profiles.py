@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.visca.codec import check_range
+from drivers.visca.codec_framing import check_range
 
 # VersionInq vendor IDs of Sony: 0x0001 in the EVI/SRG technical manuals, 0x0020 in the FCB
 # block-camera manuals (and libvisca); both are accepted.

@@ -35,9 +35,17 @@ cannot be taken for its answer. A Network Change fails every waiter with
 
 Every wait is a deadline (:class:`LinkTimeouts`), so every ticket ends in exactly one final event.
 
-The timings, request, event and counter types live in :mod:`drivers.visca.session_types` and the
-per-camera bookkeeping in :mod:`drivers.visca.session_state`; this module re-exports every public
-name, so importers keep importing from here.
+The timings, request, event and counter types live in :mod:`drivers.visca.session_types` (import
+them from there) and the per-camera bookkeeping in :mod:`drivers.visca.session_state`.
+
+Why this module is past the ~600-line guideline: it is one state machine and nothing else. The
+submit, send, reply and deadline paths of :class:`ViscaSession` all read and write the same state
+(per camera: the command awaiting its ACK, the sockets, the order owed a first reply, the guards;
+the table of live tickets; the event list) and keep its invariants together (an ACK belongs to
+the one command written since the last; every ticket ends in exactly one final event). Spreading
+its methods over modules (mixins, a chain of base classes) would scatter those invariants over
+files; what is not the state machine, its vocabulary and its bookkeeping records, is already in
+the two modules above.
 """
 
 from __future__ import annotations
@@ -47,32 +55,35 @@ import math
 from collections import Counter, deque
 from typing import Any, cast
 
-from drivers.visca.codec import (
+from drivers.visca.codec import decode_reply, encode_request
+from drivers.visca.codec_framing import (
     BROADCAST_ADDRESS,
-    BROADCAST_TYPES,
-    COMMAND_TYPES,
     CONTROLLER_ADDRESS,
     MAX_CAMERA_ADDRESS,
     MIN_CAMERA_ADDRESS,
-    Ack,
-    AddressSet,
-    AddressSetReply,
-    Broadcast,
-    BroadcastEcho,
-    Cancel,
     CodecError,
-    Command,
+    Packet,
+    Reassembler,
+    check_range,
+)
+from drivers.visca.codec_replies import (
+    Ack,
+    AddressSetReply,
+    BroadcastEcho,
     Completion,
     ErrorCode,
     ErrorReply,
     InquiryData,
     InquiryReply,
     NetworkChange,
-    Packet,
-    Reassembler,
-    check_range,
-    decode_reply,
-    encode_request,
+)
+from drivers.visca.codec_requests import (
+    BROADCAST_TYPES,
+    COMMAND_TYPES,
+    AddressSet,
+    Broadcast,
+    Cancel,
+    Command,
 )
 from drivers.visca.errors import (
     LinkBusyError,
@@ -93,30 +104,10 @@ from drivers.visca.session_state import (
     _Waiting,
 )
 from drivers.visca.session_types import (
-    ACK_TIMEOUT_S,
     BROADCAST_QUEUE_MAX,
-    BROADCAST_TIMEOUT_S,
-    BUFFER_FULL_BACKOFF_S,
-    BUFFER_FULL_RETRIES,
-    CANCEL_TIMEOUT_S,
     COMMAND_QUEUE_MAX,
-    DRIVE_COMPLETION_TIMEOUT_S,
-    FIELD_S,
-    FOCUS_DIRECT_COMPLETION_TIMEOUT_S,
-    HOME_COMPLETION_TIMEOUT_S,
     INQUIRY_QUEUE_MAX,
-    INQUIRY_TIMEOUT_S,
-    LATE_REPLY_GUARD_S,
-    ONE_PUSH_AF_COMPLETION_TIMEOUT_S,
-    PAN_TILT_MOVE_COMPLETION_TIMEOUT_S,
-    POWER_COMPLETION_TIMEOUT_S,
-    QUEUE_TIMEOUT_S,
-    RECONNECT_INITIAL_S,
-    RECONNECT_MAX_S,
-    REINIT_TIMEOUT_S,
-    RESET_COMPLETION_TIMEOUT_S,
     SOCKETS_PER_CAMERA,
-    ZOOM_DIRECT_COMPLETION_TIMEOUT_S,
     Acked,
     Answered,
     Completed,
@@ -129,46 +120,6 @@ from drivers.visca.session_types import (
     SessionStats,
     is_stop,
 )
-
-# Re-exported: the vocabulary lives in drivers.visca.session_types; importers use this module.
-__all__ = [
-    "ACK_TIMEOUT_S",
-    "BROADCAST_QUEUE_MAX",
-    "BROADCAST_TIMEOUT_S",
-    "BUFFER_FULL_BACKOFF_S",
-    "BUFFER_FULL_RETRIES",
-    "CANCEL_TIMEOUT_S",
-    "COMMAND_QUEUE_MAX",
-    "DRIVE_COMPLETION_TIMEOUT_S",
-    "FIELD_S",
-    "FOCUS_DIRECT_COMPLETION_TIMEOUT_S",
-    "HOME_COMPLETION_TIMEOUT_S",
-    "INQUIRY_QUEUE_MAX",
-    "INQUIRY_TIMEOUT_S",
-    "LATE_REPLY_GUARD_S",
-    "ONE_PUSH_AF_COMPLETION_TIMEOUT_S",
-    "PAN_TILT_MOVE_COMPLETION_TIMEOUT_S",
-    "POWER_COMPLETION_TIMEOUT_S",
-    "QUEUE_TIMEOUT_S",
-    "RECONNECT_INITIAL_S",
-    "RECONNECT_MAX_S",
-    "REINIT_TIMEOUT_S",
-    "RESET_COMPLETION_TIMEOUT_S",
-    "SOCKETS_PER_CAMERA",
-    "ZOOM_DIRECT_COMPLETION_TIMEOUT_S",
-    "Acked",
-    "Answered",
-    "Completed",
-    "Failed",
-    "InquiryLike",
-    "LinkTimeouts",
-    "NetworkChanged",
-    "SessionEvent",
-    "SessionRequest",
-    "SessionStats",
-    "ViscaSession",
-    "is_stop",
-]
 
 logger = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, TypeAlias, TypeVar
 
-from drivers.visca.codec import Broadcast, Command
+from drivers.visca.codec_requests import Broadcast, Command
 from drivers.visca.session_types import SOCKETS_PER_CAMERA, InquiryLike
 
 

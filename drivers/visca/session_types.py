@@ -3,8 +3,8 @@
 Everything a shell of :class:`drivers.visca.session.ViscaSession` (the asyncio link, the
 virtual-time bench) hands to it or gets back, apart from the state machine itself: the timings
 (:class:`LinkTimeouts` and the module constants it defaults to), the request types
-(:data:`SessionRequest`), the events (:data:`SessionEvent`) and :class:`SessionStats`.
-:mod:`drivers.visca.session` re-exports every public name, so importers keep using it.
+(:data:`SessionRequest`), the events (:data:`SessionEvent`) and :class:`SessionStats`. Import
+them from here; :mod:`drivers.visca.session` holds only the state machine.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeAlias
 
-from drivers.visca.codec import (
+from drivers.visca.codec_replies import InquiryData
+from drivers.visca.codec_requests import (
     Broadcast,
     CamPower,
     Cancel,
@@ -21,7 +22,6 @@ from drivers.visca.codec import (
     FocusDirection,
     FocusDrive,
     FocusOnePush,
-    InquiryData,
     PanDirection,
     PanTiltAbsolute,
     PanTiltDrive,

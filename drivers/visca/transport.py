@@ -5,7 +5,9 @@ call, so a datagram transport can frame each one) and hands whatever arrives to 
 callback it was opened with; a transport that breaks calls ``on_lost`` once. Both callbacks run
 on the event loop. The link opens a new transport for every (re)connection through a
 :data:`TransportFactory`, so a test or a new medium (UDP, TCP) plugs in without touching the
-link.
+link; :func:`factory_for_url` picks the factory a camera URL (:mod:`drivers.visca.url`) names,
+and :func:`open_failure_message` says what to check when it cannot be opened (both moved here
+from :mod:`drivers.visca.link`).
 
 :class:`SerialTransport`: a pyserial port read by a dedicated thread, not pyserial-asyncio-fast.
 That library registers ``port.fileno()`` with the event loop, which ``loop://`` (and other URL
@@ -30,6 +32,7 @@ from typing import Any, Protocol, cast
 import serial
 
 from drivers.visca.ip import IpChannel
+from drivers.visca.url import parse_camera_url
 
 logger = logging.getLogger(__name__)
 
@@ -365,3 +368,38 @@ def udp_factory(host: str, port: int) -> TransportFactory:
         return await UdpTransport.open(host, port, on_data, on_lost)
 
     return open_udp
+
+
+# --------------------------------------------------------------------------------------------
+# The transport a camera URL names
+# --------------------------------------------------------------------------------------------
+
+
+def factory_for_url(url: str, baudrate: int, port_factory: PortFactory) -> TransportFactory:
+    """The transport ``url`` names (see drivers.visca.url); ValueError for a bad URL."""
+    parsed = parse_camera_url(url)
+    if parsed.transport == "tcp":
+        assert parsed.port is not None
+        return tcp_factory(parsed.target, parsed.port)
+    if parsed.transport == "visca-ip":
+        assert parsed.port is not None
+        return udp_factory(parsed.target, parsed.port)
+    return serial_factory(parsed.target, parsed.baudrate or baudrate, port_factory)
+
+
+def open_failure_message(url: str, baudrate: int, exc: BaseException) -> str:
+    """What went wrong opening ``url`` and what to check: the device for a serial port (the
+    dialout group grants access to it), the camera's address and network for VISCA over IP."""
+    try:
+        parsed = parse_camera_url(url)
+    except ValueError:
+        return f"cannot open VISCA port {url!r}: {exc}"
+    if parsed.transport == "serial":
+        return (
+            f"cannot open VISCA port {url!r} at {baudrate} baud: {exc}; check that the device "
+            "exists, is not in use, and that you may open it (dialout group)"
+        )
+    return (
+        f"cannot connect to the VISCA camera at {url!r} ({parsed.transport}): {exc}; check that "
+        "the camera is on, its address and port are right, and the network reaches it"
+    )
