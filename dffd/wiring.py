@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
 
     from dffd.config import DffdConfig
+    from dffd.config.models import CaptureSection
     from dffd.core.lens import Lens
     from dffd.core.tracking3d import TrackerKind
     from dffd.scheduler import Scheduler
@@ -32,6 +33,7 @@ __all__ = [
     "WiringError",
     "arm_search",
     "build_core",
+    "capture_latency_frames",
     "capture_source",
     "pipeline_config",
     "scheduler_config",
@@ -76,6 +78,16 @@ def arm_search(scheduler: Scheduler, settings: DffdConfig, t: float) -> None:
         scheduler.disarm_search()
 
 
+def capture_latency_frames(capture: CaptureSection, fps: float) -> int:
+    """Frames between an exposure and its delivery, as the scheduler counts them (whole frames,
+    rounded up): ``[capture] latency_s`` at the camera's frame rate when it is set (a stream's
+    measured delay: several frames), else ``latency_frames``."""
+    if capture.latency_s is None:
+        return capture.latency_frames
+    # (a hair below a whole number of frames is that number: 0.1 s at 30 fps is 3, not 4)
+    return max(math.ceil(capture.latency_s * fps - 1e-9), 0)
+
+
 def scheduler_config(
     settings: DffdConfig,
     *,
@@ -100,7 +112,7 @@ def scheduler_config(
     return SchedulerConfig(
         fps=fps,
         exposure_s=exposure,
-        capture_latency_frames=math.ceil(settings.capture.latency_frames),
+        capture_latency_frames=capture_latency_frames(settings.capture, fps),
         timing_margin_s=sc.timing_margin_s,
         burst_mode=sc.burst_mode,
         # sigma policy: a burst when σ of ẑ exceeds the threshold, and otherwise only after

@@ -110,3 +110,19 @@ def test_scheduler_speed_tables_come_from_the_camera_model_profile() -> None:
         assert sched.tilt_speeds_deg_s == profile.tilt_speeds_deg_s
     # The two models' tables differ, so a scheduler on the D70 commands the D70's rates.
     assert EVI_D70.pan_speeds_deg_s != EVI_D100.pan_speeds_deg_s
+
+
+def test_the_scheduler_counts_a_measured_stream_latency_in_frames() -> None:
+    """[capture] latency_s (a stream's measured delay) sets the frames in flight the scheduler
+    counts, at the camera's frame rate; unset, latency_frames does (it was always the latter)."""
+    facts = {
+        "exposure_s": None, "focus_speed_counts_per_s": 20000.0, "focal_length_mm": 4.0,
+        "pixel_pitch_mm": 0.006, "frame_size": (640, 480),
+    }  # fmt: skip
+    default = DffdConfig()
+    assert scheduler_config(default, fps=30.0, **facts).capture_latency_frames == 1  # type: ignore[arg-type]
+    stream = DffdConfig.model_validate({"capture": {"latency_s": 0.16, "latency_frames": 1}})
+    assert scheduler_config(stream, fps=30.0, **facts).capture_latency_frames == 5  # type: ignore[arg-type]
+    assert scheduler_config(stream, fps=25.0, **facts).capture_latency_frames == 4  # type: ignore[arg-type]
+    exact = DffdConfig.model_validate({"capture": {"latency_s": 0.1}})
+    assert scheduler_config(exact, fps=30.0, **facts).capture_latency_frames == 3  # type: ignore[arg-type]
