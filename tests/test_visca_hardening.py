@@ -101,6 +101,22 @@ async def test_the_model_the_camera_reports_picks_its_profile(
     assert "set camera.model = 'evi-d70'" in caplog.text
 
 
+async def test_the_daemon_refuses_a_camera_of_another_model_than_configured() -> None:
+    """The daemon's scheduler is built from camera.model; a camera identifying as another known
+    model would have its pan/tilt speeds chosen on one table and sent on another: start-up
+    says which model to configure instead. The configured model, or an unknown one, passes."""
+    from dffd.daemon.startup import camera_model_problem
+
+    async with sim_camera(DeviceConfig(model=MODEL_EVI_D70), profile=EVI_D100) as (_, _, camera):
+        problem = camera_model_problem(camera, "evi-d100")
+        assert camera_model_problem(camera, "evi-d70") is None
+    assert problem is not None
+    assert "identifies as the EVI-D70 but camera.model is 'evi-d100'" in problem
+    assert problem.endswith("set camera.model = 'evi-d70'")
+    async with sim_camera(DeviceConfig(model=0x0777), profile=EVI_D100) as (_, _, camera):
+        assert camera_model_problem(camera, "evi-d100") is None
+
+
 async def test_an_unknown_model_keeps_the_configured_profile_with_a_warning(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

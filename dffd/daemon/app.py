@@ -386,8 +386,9 @@ class Daemon:
                     assert self.scheduler is not None
                     self.timeline.mark("VISCA link open")
                     await initialize_camera(
-                        camera, lens, cfg.lens.zoom_counts, self.scheduler, self._wake.set
-                    )
+                        camera, lens, cfg.lens.zoom_counts, self.scheduler, self._wake.set,
+                        cfg.camera.model,
+                    )  # fmt: skip
                     self.timeline.mark("camera initialised")
                     self.camera = camera
                     actuators = Actuators(camera, self.scheduler, self._wake.set)

@@ -153,17 +153,41 @@ async def open_source(
     return source, None, (hi - lo) / profile.focus_full_travel_s, None
 
 
-async def initialize_camera(
+def camera_model_problem(camera: Camera, configured: str) -> str | None:
+    """Why the initialised ``camera`` cannot run under ``camera.model = configured``, or None.
+
+    The driver switches to the profile of a known model the camera identifies as; the
+    scheduler's pan/tilt speed tables and range and the focus range were built from the
+    configured model. Run on two tables, pan/tilt speeds are chosen on one and converted on the
+    other, so the daemon refuses to start instead."""
+    wanted = profile_for(configured)
+    if camera.profile.key == wanted.key:
+        return None
+    return (
+        f"the camera identifies as the {camera.profile.name} but camera.model is "
+        f"{configured!r} (the {wanted.name}): the scheduler's pan/tilt speed tables and range and "
+        f"the focus range come from camera.model; set camera.model = {camera.profile.key!r}"
+    )
+
+
+async def initialize_camera(  # noqa: PLR0917 - the daemon's parts the set-up touches
     camera: Camera,
     lens: Lens,
     zoom_counts: int | None,
     scheduler: Scheduler,
     wake: Callable[[], None],
+    configured_model: str | None = None,
 ) -> None:
-    """Initialise the camera, set the zoom, anchor pan/tilt; re-do it after every reconnect."""
+    """Initialise the camera, set the zoom, anchor pan/tilt; re-do it after every reconnect.
+    ``configured_model``: ``camera.model``, which a camera identifying as another known model
+    contradicts (:func:`camera_model_problem`: a :class:`DaemonError`)."""
     try:
         async with asyncio.timeout(CAMERA_INIT_TIMEOUT_S):
             await camera.initialize()
+            if configured_model is not None:
+                problem = camera_model_problem(camera, configured_model)
+                if problem is not None:
+                    raise DaemonError(problem)
             zoom = zoom_counts
             if zoom is None:
                 zoom = lens.zoom_counts
@@ -205,6 +229,7 @@ async def _start_stream(stream: StreamFrameSource, stack: contextlib.AsyncExitSt
 __all__ = [
     "CAMERA_INIT_TIMEOUT_S",
     "DaemonError",
+    "camera_model_problem",
     "initialize_camera",
     "open_source",
     "start_broker",
