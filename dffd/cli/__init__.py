@@ -46,7 +46,7 @@ SUBCOMMANDS: dict[str, Subcommand] = {
         "dffd.daemon.app:run",
     ),
     "sim-camera": Subcommand(
-        "serve the simulated VISCA camera on a pseudo-terminal",
+        "serve the simulated VISCA camera on a pseudo-terminal, TCP or UDP (--listen)",
         "drivers.sim.cli:configure_parser",
         "drivers.sim.cli:run",
     ),

@@ -79,7 +79,10 @@ class CameraSection(_Section):
     name: str = Field(default="sim", description="camera name, used in topics dffd/<name>/…")
     driver: Literal["sim", "visca"] = Field(default="sim", description="sim = simulated camera")
     port: str | None = Field(
-        default=None, description="serial port of a VISCA camera, e.g. /dev/visca0"
+        default=None,
+        description="where a VISCA camera is: a serial port (/dev/visca0) or other pyserial URL "
+        "(socket://host:4001), raw VISCA over TCP (tcp://host:5678) or VISCA over IP "
+        "(visca-ip://host:52381)",
     )
     baudrate: Literal[9600, 38400] = 9600
     address: Annotated[int, Field(ge=1, le=7)] = 1

@@ -87,7 +87,7 @@ class SigmaByEstimator(BaseModel):
 
 
 class Estimate(Payload):
-    """``…/estimate``: one per tracking frame."""
+    """``…/estimate``: one per frame with a contour."""
 
     seq: NonNegInt = Field(description="message counter, +1 per estimate since start")
     t: float = Field(description="UTC wall time, s since the epoch")

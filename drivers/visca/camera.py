@@ -1,11 +1,12 @@
 """Typed async camera API in user units (degrees, deg/s, counts) over a :class:`ViscaLink`.
 
 One :class:`Camera` per camera address (1–7); several share one link on a daisy chain. Unit
-conversion goes through a :class:`CameraProfile` (EVI-D100 by default, EVI-D70 second). Every
-argument is checked against the profile *before* a byte is sent (``ValueError`` naming the field
-and its range). Idempotent operations (inquiries, absolute/direct moves, stops, modes) are
-retried ``retries`` times after a timeout or a Network Change; relative moves never are (a lost
-ACK could mean the camera already moved).
+conversion goes through a :class:`CameraProfile` (:mod:`drivers.visca.profiles`: EVI-D100 by
+default, EVI-D70, and an SRG-300-like VISCA-over-IP head). Every argument is checked against the
+profile *before* a byte is sent (``ValueError`` naming the field and its range). Idempotent
+operations (inquiries, absolute/direct moves, stops, modes) are retried ``retries`` times after a
+timeout or a Network Change; relative moves never are (a lost ACK could mean the camera already
+moved).
 
 Directions follow the VISCA convention used by the simulator: pan right and tilt up positive.
 """
