@@ -8,11 +8,11 @@ import argparse
 import asyncio
 import os
 import pty
+import re
 import select
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -24,6 +24,7 @@ from dffd.calibrate_operator import InputEndedError, ask_operator, stopped_messa
 from dffd.calibrate_rigs import SimRig
 from dffd.cli.arguments import configure_calibrate
 from dffd.exitcodes import EXIT_INTERRUPTED, EXIT_USAGE
+from tests.pty_support import CTRL_C, CTRL_D, type_at_cue
 
 REPO = Path(__file__).resolve().parent.parent
 LAB_EXAMPLE = REPO / "config" / "lab-evi-d100.toml"
@@ -36,9 +37,7 @@ PROMPT_TIMEOUT_S = 90.0
 EXIT_TIMEOUT_S = 15.0
 # The simulated camera prints its pty and video URL once it serves them (~0.5 s).
 SIM_START_TIMEOUT_S = 30.0
-CTRL_C, CTRL_D = b"\x03", b"\x04"
 PROMPT = b"then press Enter: "
-_READ_S = 0.05  # select() period while reading the terminal
 OLD_TABLE = "an older table\n"
 
 
@@ -229,38 +228,5 @@ def _answer_in_terminal(argv: list[str], key: bytes) -> tuple[int, str]:
     """Run ``argv`` on a new pty, type ``key`` at the first prompt; (exit code, output)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("DFFD_")}
     env["PYTHONPATH"] = str(REPO)
-    pid, fd = pty.fork()
-    if pid == 0:  # the child: the pty is its controlling terminal, it leads a new session
-        os.chdir(REPO)
-        signal.signal(signal.SIGINT, signal.SIG_DFL)  # as at a terminal, whatever pytest inherited
-        os.execvpe(argv[0], argv, env)
-    out = bytearray()
-    deadline = time.monotonic() + PROMPT_TIMEOUT_S
-    typed = False
-    try:
-        while True:
-            if not typed and PROMPT in out:
-                os.write(fd, key)
-                typed = True
-                deadline = time.monotonic() + EXIT_TIMEOUT_S
-            if time.monotonic() > deadline:
-                what = f"no exit after {key!r}" if typed else "no prompt"
-                raise AssertionError(f"{what}:\n{out.decode(errors='replace')[-3000:]}")
-            ready, _, _ = select.select([fd], [], [], _READ_S)
-            if ready:
-                try:
-                    data = os.read(fd, 65536)
-                except OSError:  # EIO: every process holding the terminal has exited
-                    break
-                if not data:
-                    break
-                out += data
-        _, status = os.waitpid(pid, 0)
-    finally:
-        os.close(fd)
-        try:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-        except (ProcessLookupError, ChildProcessError):
-            pass
-    return os.waitstatus_to_exitcode(status), out.decode(errors="replace")
+    prompt = re.compile(re.escape(PROMPT))
+    return type_at_cue(argv, REPO, env, prompt, key, PROMPT_TIMEOUT_S, EXIT_TIMEOUT_S)

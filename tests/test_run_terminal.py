@@ -10,17 +10,15 @@ order and that make then exits 0. The embedded broker and the dashboard move to 
 from __future__ import annotations
 
 import os
-import pty
 import re
-import select
 import shutil
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.conftest import free_port
+from tests.pty_support import CTRL_C, type_at_cue
 
 pytestmark = [
     pytest.mark.slow,
@@ -33,49 +31,6 @@ READY_TIMEOUT_S = 40.0
 # The daemon's shutdown is bounded by 10 s (dffd.daemon.app.SHUTDOWN_TIMEOUT_S).
 EXIT_TIMEOUT_S = 15.0
 READY = re.compile(rb"ready: camera initialised and frames flowing")
-CTRL_C = b"\x03"
-_READ_S = 0.05  # select() period while reading the terminal
-
-
-def _run_in_terminal(argv: list[str], cwd: Path, env: dict[str, str]) -> tuple[int, str]:
-    """Run ``argv`` on a new pty, type Ctrl-C once the daemon is ready; (exit code, output)."""
-    pid, fd = pty.fork()
-    if pid == 0:  # the child: the pty is its controlling terminal, it leads a new session
-        os.chdir(cwd)
-        os.execvpe(argv[0], argv, env)
-    out = bytearray()
-    deadline = time.monotonic() + READY_TIMEOUT_S
-    typed = False
-    try:
-        while True:
-            if not typed and READY.search(out):
-                os.write(fd, CTRL_C)
-                typed = True
-                deadline = time.monotonic() + EXIT_TIMEOUT_S
-            if time.monotonic() > deadline:
-                raise AssertionError(
-                    ("no exit after Ctrl-C" if typed else "daemon not ready")
-                    + ":\n"
-                    + out.decode(errors="replace")[-3000:]
-                )
-            ready, _, _ = select.select([fd], [], [], _READ_S)
-            if ready:
-                try:
-                    data = os.read(fd, 65536)
-                except OSError:  # EIO: every process holding the terminal has exited
-                    break
-                if not data:
-                    break
-                out += data
-        _, status = os.waitpid(pid, 0)
-    finally:
-        os.close(fd)
-        try:
-            os.kill(pid, 9)
-            os.waitpid(pid, 0)
-        except (ProcessLookupError, ChildProcessError):
-            pass
-    return os.waitstatus_to_exitcode(status), out.decode(errors="replace")
 
 
 @pytest.mark.timeout(90)
@@ -90,7 +45,10 @@ def test_ctrl_c_under_make_run_stops_dffd_cleanly_and_make_exits_0(tmp_path: Pat
         COLUMNS="120",
         LINES="50",
     )
-    code, text = _run_in_terminal(["make", "-s", "-f", str(makefile), "run"], tmp_path, env)
+    code, text = type_at_cue(
+        ["make", "-s", "-f", str(makefile), "run"], tmp_path, env, READY, CTRL_C,
+        READY_TIMEOUT_S, EXIT_TIMEOUT_S,
+    )  # fmt: skip
     assert code == 0, text[-3000:]
     assert "dffd stopped cleanly on Ctrl-C (SIGINT)" in text, text[-3000:]
     assert "pan/tilt stopped" in text
