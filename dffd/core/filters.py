@@ -20,8 +20,9 @@ import numpy.typing as npt
 FloatArray = npt.NDArray[np.float64]
 
 _SMALL = 1e-9
-# Memoised exp(M dt): per tracking frame the three axes of each velocity estimator and CF2's two
-# inputs step with the same (M, dt), so most evaluations repeat one just made; a few entries do.
+# Memoised exp(M dt): on every frame with an estimate the three axes of each velocity estimator
+# and CF2's two inputs step with the same (M, dt), so most evaluations repeat one just made; a few
+# entries do.
 _EXPM_CACHE = 16
 
 
@@ -419,9 +420,9 @@ class DepthKF:
 
 
 # -- scalar 2×2 kernels -----------------------------------------------------------------------
-# The filters step once per tracking frame on 2-vectors: NumPy's per-call overhead on 2×2 arrays
-# (a few µs per operation, ~0.3 ms per frame in total, measured) dwarfs the arithmetic, so the
-# closed forms are evaluated on Python floats.
+# The filters step once per frame with a contour, on 2-vectors: NumPy's per-call overhead on 2×2
+# arrays (a few µs per operation, ~0.3 ms per frame in total, measured) dwarfs the arithmetic, so
+# the closed forms are evaluated on Python floats.
 def _mat(a: FloatArray) -> Mat2:
     return float(a[0, 0]), float(a[0, 1]), float(a[1, 0]), float(a[1, 1])
 
