@@ -349,7 +349,7 @@ def test_the_response_adds_no_noise_on_a_gaussian_psf() -> None:
     assert _response("disc").correct(0.0)[1] < 0.95
 
 
-def test_the_response_corrects_the_vertex_and_its_sigma_only_on_its_own_bracket() -> None:
+def test_the_response_corrects_the_vertex_only_on_its_own_bracket_and_keeps_its_sigma() -> None:
     response = VertexResponse(
         "peak_gradient", 0.1 / 32.0, (-1.0, -0.5, 0.0, 0.5, 1.0), (-0.9, -0.55, 0.0, 0.55, 0.9)
     )
@@ -357,9 +357,10 @@ def test_the_response_corrects_the_vertex_and_its_sigma_only_on_its_own_bracket(
     s = [1e-4] * 3
     raw = fit_burst([31.9, 32.0, 32.1], g, s, LENS)
     fixed = fit_burst([31.9, 32.0, 32.1], g, s, LENS, response=response)
-    x, gain = response.correct((raw.v_hat_mm - 32.0) / 0.1)
+    x, slope = response.correct((raw.v_hat_mm - 32.0) / 0.1)
     assert fixed.v_hat_mm == pytest.approx(32.0 + 0.1 * x)
-    assert fixed.sigma_v_mm == pytest.approx(raw.sigma_v_mm * gain)
+    assert slope < 0.9  # near the centre the inverse response's slope would narrow σ …
+    assert fixed.sigma_v_mm == pytest.approx(raw.sigma_v_mm)  # … the fitted σ is kept
     assert fixed.z_m == pytest.approx(LENS.depth_from_v(fixed.v_hat_mm))
     # a bracket twice as wide (the start-up's) is not corrected
     wide = fit_burst([31.8, 32.0, 32.2], _parabola(np.array([31.8, 32.0, 32.2]), 32.03), s,

@@ -286,11 +286,11 @@ class EstimatorsSection(_Section):
         "bias fitted online against the edge moment, §12)",
     )
     vertex_response: bool = Field(
-        default=False,
+        default=True,
         description="correct each burst's vertex by the lens file's vertex response (measured "
-        "by dffd calibrate for the same focus measure; a lens file without one: no correction). "
-        "Off by default: on the reference optics it gives the vertex slope 1 but the approach "
-        "scenario's best estimate got worse (docs/estimation.md §21)",
+        "by dffd calibrate for the same focus measure; a lens file without one: no correction), "
+        "its σ as fitted: over six seeds of the reference optics raw z_m 4-18 % better on five "
+        "of six scenarios and σ as honest (docs/estimation.md §29)",
     )
 
     @model_validator(mode="after")
