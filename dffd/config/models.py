@@ -286,11 +286,12 @@ class EstimatorsSection(_Section):
         "bias fitted online against the edge moment, §12)",
     )
     vertex_response: bool = Field(
-        default=True,
+        default=False,
         description="correct each burst's vertex by the lens file's vertex response (measured "
         "by dffd calibrate for the same focus measure; a lens file without one: no correction), "
-        "its σ as fitted: over six seeds of the reference optics raw z_m 4-18 % better on five "
-        "of six scenarios and σ as honest (docs/estimation.md §29)",
+        "its σ as fitted. Off by default: raw z_m 4-18 % better on the reference optics, but the "
+        "published σ less honest (NEES up in most runs, 2σ coverage below 0.90 on all five "
+        "scenarios' own seeds) and the best estimate no better (docs/estimation.md §29)",
     )
 
     @model_validator(mode="after")
