@@ -248,7 +248,8 @@ class ContourTracker:
         motion: Motion,
         head_shift: tuple[float, float] = (0.0, 0.0),
     ) -> BoundaryObservation:
-        """Predict to time ``t``, measure on ``gray`` and update; raises if not active.
+        """Predict to time ``t``, measure on ``gray`` and update; raises if not active. On the
+        very frame (time and array) :meth:`start` just fitted, the start's observation.
 
         ``head_shift``: the image motion the head's own turn since the last frame gives a
         world-fixed point at the contour (:func:`dffd.core.geometry.image_shift` of the frames'
@@ -267,9 +268,10 @@ class ContourTracker:
             raise RuntimeError("ContourTracker.update called without an active contour")
         started, self._started = self._started, None
         if started is not None and started[0] == t and started[1] is gray:
-            # The frame the contour was just started on: the start's passes fitted it (the
-            # last one from a converged contour); another fit of the same frame would repeat
-            # them at ~55 us more per acquisition (measured in situ, hil.bench_core's stream).
+            # The frame the contour was just started on: the start's six passes fitted it.
+            # A second fit with the tracker's own model moved r by 0.001 px on the traced
+            # closed-loop runs (0.5 % on one blurred first frame) and cost ~55 us an acquisition
+            # (docs/design.md §10).
             return started[2]
         dt = max(t - self._t, 0.0)
         vx, vy = self._velocity
