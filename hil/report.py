@@ -645,7 +645,9 @@ def accuracy_table(reports: Sequence[dict[str, Any]]) -> str:
         best = r["estimators"].get(r["best"]) or {}
         coverage = _num(best.get("coverage_2sigma"), "{:.3f}")
         per_seed = [
-            c for row in seeds.get("per_seed") or () if (c := row.get("best_coverage_2sigma"))
+            c
+            for row in seeds.get("per_seed") or ()
+            if (c := row.get("best_coverage_2sigma")) is not None
         ]
         if len(per_seed) > 1:
             coverage += f" ({min(per_seed):.2f}–{max(per_seed):.2f})"

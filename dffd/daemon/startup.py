@@ -176,7 +176,7 @@ async def initialize_camera(  # noqa: PLR0917 - the daemon's parts the set-up to
     zoom_counts: int | None,
     scheduler: Scheduler,
     wake: Callable[[], None],
-    configured_model: str | None = None,
+    configured_model: str,
 ) -> None:
     """Initialise the camera, set the zoom, anchor pan/tilt; re-do it after every reconnect.
     ``configured_model``: ``camera.model``, which a camera identifying as another known model
@@ -184,10 +184,9 @@ async def initialize_camera(  # noqa: PLR0917 - the daemon's parts the set-up to
     try:
         async with asyncio.timeout(CAMERA_INIT_TIMEOUT_S):
             await camera.initialize()
-            if configured_model is not None:
-                problem = camera_model_problem(camera, configured_model)
-                if problem is not None:
-                    raise DaemonError(problem)
+            problem = camera_model_problem(camera, configured_model)
+            if problem is not None:
+                raise DaemonError(problem)
             zoom = zoom_counts
             if zoom is None:
                 zoom = lens.zoom_counts
