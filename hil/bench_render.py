@@ -28,11 +28,11 @@ from drivers.sim.config import (
     WorldConfig,
     load_sim_camera_config,
 )
-from drivers.sim.device import VirtualClock
 from drivers.sim.resources import reference_camera_file
 from drivers.sim.rig import build_sim_camera
 from drivers.sim.source import SimFrameSource
 from drivers.sim.state import CameraState
+from drivers.sim.virtual_clock import VirtualClock
 
 BUDGET_MS = 5.0  # issue 3
 

@@ -27,7 +27,7 @@ from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from drivers.sim.device import BITS_PER_BYTE, FIELD_PERIOD_S, DeviceConfig
+from drivers.sim.device_types import BITS_PER_BYTE, FIELD_PERIOD_S, DeviceConfig
 from drivers.sim.server import SimCameraServer
 from drivers.visca import codec_requests
 from drivers.visca.camera import Camera

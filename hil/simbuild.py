@@ -24,7 +24,7 @@ from drivers.sim.config import (
     load_sim_camera_config,
     with_overrides,
 )
-from drivers.sim.device import DeviceConfig
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.optics import Optics
 from drivers.sim.resources import reference_camera_file
 from drivers.sim.rig import SimCamera, build_sim_camera

@@ -24,7 +24,7 @@ from dffd.scheduler import (
     PanTiltInquiry,
     PanTiltStop,
 )
-from drivers.sim.device import DeviceConfig
+from drivers.sim.device_types import DeviceConfig
 from drivers.visca import codec_replies, codec_requests
 from drivers.visca.camera import EVI_D70, EVI_D100
 from tests.visca_support import WAIT_S, sim_camera

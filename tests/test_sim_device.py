@@ -9,20 +9,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.sim.device import (
+from drivers.sim.device import INPUT_QUEUE_PACKETS, RX_WIRE_MAX_BYTES
+from drivers.sim.device_motors import speed_deg_s
+from drivers.sim.device_types import (
     COUNTS_PER_DEGREE,
     DEFAULT_FOCUS_SPEED_COUNTS_S,
     DEFAULT_ZOOM_SPEED_COUNTS_S,
     FIELD_PERIOD_S,
-    INPUT_QUEUE_PACKETS,
-    RX_WIRE_MAX_BYTES,
     DeviceConfig,
     Emission,
-    VirtualClock,
-    speed_deg_s,
 )
 from drivers.sim.faults import Faults, FaultSpec, FaultSpecError
 from drivers.sim.server import InProcessCamera, packets
+from drivers.sim.virtual_clock import VirtualClock
 from drivers.visca import codec, codec_replies, codec_requests
 from drivers.visca.codec_framing import Packet
 from drivers.visca.codec_replies import Completion, InquiryReply, NetworkChange

@@ -14,7 +14,7 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from drivers.sim.device import DeviceConfig
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.models import SIM_MODELS, SimModel, sim_model
 from drivers.sim.server import SimCameraServer

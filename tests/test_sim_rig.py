@@ -7,8 +7,9 @@ import time
 import pytest
 
 from drivers.sim.config import SimCameraConfig, with_overrides
-from drivers.sim.device import DeviceConfig, VirtualClock
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.rig import build_sim_camera
+from drivers.sim.virtual_clock import VirtualClock
 
 
 def _config() -> SimCameraConfig:

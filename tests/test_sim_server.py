@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import serial
 
-from drivers.sim.device import DeviceConfig
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.server import SimCameraServer
 from drivers.visca import codec, codec_framing, codec_replies, codec_requests
 

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from drivers.sim.device import DeviceConfig
+from drivers.sim.device_types import DeviceConfig
 from drivers.visca import codec_replies
 from drivers.visca.camera import EVI_D70, EVI_D100, Camera, SpeedCode, profile_for
 from drivers.visca.errors import (

@@ -14,7 +14,7 @@ import logging
 
 import pytest
 
-from drivers.sim.device import MODEL_EVI_D70, DeviceConfig
+from drivers.sim.device_types import MODEL_EVI_D70, DeviceConfig
 from drivers.sim.faults import Faults
 from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.server import SimCameraServer

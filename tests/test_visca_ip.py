@@ -6,7 +6,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.sim.device import DeviceConfig, ViscaDevice
+from drivers.sim.device import ViscaDevice
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.ip_server import IpCameraEndpoint
 from drivers.sim.state import CameraState
 from drivers.visca.ip import (

@@ -9,7 +9,7 @@ import random
 
 import pytest
 
-from drivers.sim.device import DeviceConfig
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.faults import FaultSpec
 from drivers.visca import codec, codec_requests
 from drivers.visca.camera import EVI_D100

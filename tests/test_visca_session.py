@@ -10,7 +10,8 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from drivers.sim.device import DeviceConfig, ViscaDevice
+from drivers.sim.device import ViscaDevice
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.faults import Faults
 from drivers.sim.state import CameraState
 from drivers.sim.virtual_bus import VirtualBus

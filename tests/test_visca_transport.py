@@ -11,7 +11,7 @@ from typing import Any, cast
 
 import pytest
 
-from drivers.sim.device import DeviceConfig
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.net_server import SimTcpServer
 from drivers.sim.server import SimCameraServer

@@ -11,7 +11,8 @@ from collections.abc import AsyncIterator
 from types import TracebackType
 from typing import Self
 
-from drivers.sim.device import DeviceConfig, ViscaDevice
+from drivers.sim.device import ViscaDevice
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.faults import Faults
 from drivers.sim.server import SimCameraServer
 from drivers.sim.state import CameraState

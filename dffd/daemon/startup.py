@@ -79,7 +79,7 @@ async def start_camera_transport(
     if cfg.camera.driver == "visca":
         assert cfg.camera.port is not None  # validated by the config
         return cfg.camera.port, None, None
-    from drivers.sim.device import DeviceConfig
+    from drivers.sim.device_types import DeviceConfig
     from drivers.sim.rig import build_sim_camera
     from drivers.sim.server import SimCameraServer
 

@@ -15,7 +15,7 @@ import time
 
 import serial
 
-from drivers.sim.device import FIELD_PERIOD_S, DeviceConfig
+from drivers.sim.device_types import FIELD_PERIOD_S, DeviceConfig
 from drivers.sim.server import SimCameraServer
 from drivers.visca import codec, codec_requests
 

@@ -22,7 +22,7 @@ from drivers.sim.models import SIM_MODELS, sim_model
 if TYPE_CHECKING:
     import contextlib
 
-    from drivers.sim.device import DeviceConfig
+    from drivers.sim.device_types import DeviceConfig
     from drivers.sim.faults import Faults
     from drivers.sim.rig import SimCamera
 
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     """Serve until SIGTERM/SIGINT; return the exit code."""
     import asyncio
 
-    from drivers.sim.device import DeviceConfig
+    from drivers.sim.device_types import DeviceConfig
     from drivers.sim.faults import Faults, FaultSpecError
 
     try:

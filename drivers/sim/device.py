@@ -23,11 +23,19 @@ time line:
   commands while AF is on, and motion commands in standby: not executable ``z0 6y 41 FF`` *instead
   of* the ACK, ``y`` being the socket the command would have taken (no socket is held).
 * **Motors** move :class:`~drivers.sim.state.CameraState` axes: pan/tilt in degrees at the speed
-  table, focus and zoom in counts at finite speeds (defaults below are assumptions: the EVI-D100
-  manual gives no motor speeds).
+  table, focus and zoom in counts at finite speeds (the defaults in :mod:`drivers.sim.device_types`
+  are assumptions: the EVI-D100 manual gives no motor speeds).
 
 Directions: pan right and tilt up are positive (pan position 0xFA60 is the left end stop); Focus
 Far moves towards 0x1000 (far end), Near towards 0x8400.
+
+The model constants, :class:`~drivers.sim.device_types.DeviceConfig`, the
+:class:`~drivers.sim.device_types.Emission` and the counters live in
+:mod:`drivers.sim.device_types` (import them from there); the motors' limits and moves for the
+camera model in :mod:`drivers.sim.device_motors`. What is left is the one class
+:class:`ViscaDevice` (~515 lines), a little past ~600 lines with its imports: its wire, time line,
+input, handlers and output share the sockets, the event heap, the queues and the power epoch, and
+are one sans-IO engine.
 """
 
 from __future__ import annotations
@@ -38,12 +46,19 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
+from drivers.sim.device_motors import (
+    check_model_ranges,
+    drive_pan_tilt,
+    move_pan_tilt,
+    pan_speed_deg_s,
+    tilt_speed_deg_s,
+    travel_s,
+)
+from drivers.sim.device_types import DeviceConfig, DeviceStats, Emission
 from drivers.sim.faults import Faults
-from drivers.sim.models import EVI_D100 as SIM_EVI_D100
-from drivers.sim.models import SimModel
 from drivers.sim.state import Axis, CameraState
 from drivers.visca import codec, codec_framing, codec_replies, codec_requests
 from drivers.visca.codec_framing import Packet
@@ -62,34 +77,8 @@ from drivers.visca.codec_replies import (
 logger = logging.getLogger(__name__)
 TRACE = 5  # raw bytes are logged below DEBUG (STYLE §8)
 
-# ---- model constants (EVI-D100-like, design.md §6) ---------------------------------------------
+# ---- buffers -------------------------------------------------------------------------------------
 
-FIELD_PERIOD_S = 1.0 / 60.0  # NTSC field: the camera handles at most one message per field
-BITS_PER_BYTE = 10  # 8N1 on the wire: start bit, 8 data bits, stop bit
-COUNTS_PER_DEGREE = 14.4  # pan/tilt position counts per degree (EVI-D100)
-PAN_LIMIT_COUNTS = 0x05A0  # ±100° (0xFA60–0x05A0)
-TILT_LIMIT_COUNTS = 0x0168  # ±25° (0xFE98–0x0168)
-MAX_PAN_SPEED_CODE = 0x18
-MAX_TILT_SPEED_CODE = 0x14
-# deg/s for speed codes 01…18 (index code − 1); tilt uses the first 0x14 entries.
-SPEED_TABLE_DEG_S = (
-    2.0, 2.4, 3.0, 3.7, 4.7, 6.1, 7.4, 9.1, 11.0, 14.0, 18.0, 22.0,
-    27.0, 34.0, 42.0, 52.0, 65.0, 81.0, 100.0, 125.0, 155.0, 190.0, 240.0, 300.0,
-)  # fmt: skip
-FOCUS_RANGE = (0x1000, 0x8400)  # far end … near end, counts
-ZOOM_RANGE = (0x0000, 0x4000)  # wide … tele, counts
-# Assumed motor speeds (no datasheet figure): focus sweeps its full range in about 1.5 s, zoom
-# goes wide → tele in about 2 s, both typical of the EVI-D100 generation.
-DEFAULT_FOCUS_SPEED_COUNTS_S = (FOCUS_RANGE[1] - FOCUS_RANGE[0]) / 1.5
-DEFAULT_ZOOM_SPEED_COUNTS_S = (ZOOM_RANGE[1] - ZOOM_RANGE[0]) / 2.0
-DEFAULT_POWER_ON_S = 0.1  # standby → on (real cameras take seconds; short keeps tests fast)
-# VersionInq identity: Sony's vendor ID is 0x0001; model codes as controllers' tables know them
-# (0x040D EVI-D100, 0x040E EVI-D70), so a controller that picks its tables from the model gets
-# the camera we simulate.
-VENDOR_SONY = 0x0001
-MODEL_EVI_D100 = 0x040D
-MODEL_EVI_D70 = 0x040E
-DEFAULT_ROM = 0x0200
 # Packets waiting for their field. A burst larger than this is a controller bug; the camera loses
 # the overflow like a real UART receive buffer would.
 INPUT_QUEUE_PACKETS = 16
@@ -106,72 +95,6 @@ Group = Literal["pantilt", "focus", "zoom", "power"]
 _MOTOR_GROUPS: tuple[Group, ...] = ("pantilt", "focus", "zoom")
 _Targets = tuple[tuple[Axis, float], ...]  # where each axis of a move ends
 _Started = tuple[Group, float, _Targets]  # motor group, end time, targets
-
-
-@dataclass(frozen=True, slots=True)
-class DeviceConfig:
-    """How the simulated camera behaves; defaults are an EVI-D100 at 9600 baud, no pacing."""
-
-    address: int = 1  # position in the daisy chain: address before Address Set; see Address Set
-    baud: int = 9600
-    pace: bool = False  # model the wire time of every byte at ``baud`` (10 bits per byte)
-    field_period_s: float = FIELD_PERIOD_S
-    focus_speed_counts_s: float = DEFAULT_FOCUS_SPEED_COUNTS_S  # Focus Direct / One Push
-    zoom_speed_counts_s: float = DEFAULT_ZOOM_SPEED_COUNTS_S  # Zoom Direct
-    focus_drive_standard: int = 4  # Focus Far/Near without a speed drive at variable speed p=4
-    power_on_s: float = DEFAULT_POWER_ON_S
-    autofocus_at_power_up: bool = True  # real cameras come up in AF: drivers must set manual
-    network_change_at_power_up: bool = True
-    reply_from_a0: bool = False  # firmware quirk (design.md §6): replies carry header A0, not 90
-    # Emulator quirk: the broadcast IF_Clear clears the sockets but is not echoed (the spec
-    # echoes it); a controller must fall back to each camera's own IF_Clear.
-    echo_if_clear_broadcast: bool = True
-    camera: SimModel = SIM_EVI_D100  # limits, speeds and identity (drivers/sim/models.py)
-    vendor: int | None = None  # VersionInq vendor; None: the camera model's
-    model: int | None = None  # VersionInq model code; None: the camera model's
-    rom: int = DEFAULT_ROM
-    sockets: int = 2
-
-    def __post_init__(self) -> None:
-        codec_framing.check_range("address", self.address, 1, 7)
-        if self.baud <= 0 or self.field_period_s <= 0:
-            raise ValueError("baud and field_period_s must be positive")
-        if self.focus_speed_counts_s <= 0 or self.zoom_speed_counts_s <= 0:
-            raise ValueError("focus and zoom speeds must be positive (counts per second)")
-        codec_framing.check_range("focus_drive_standard", self.focus_drive_standard, 0, 7)
-        if self.power_on_s < 0:
-            raise ValueError("power_on_s must not be negative")
-
-    @property
-    def byte_time_s(self) -> float:
-        """Wire time of one byte at ``baud`` (8N1)."""
-        return BITS_PER_BYTE / self.baud
-
-    def focus_drive_speed(self, p: int) -> float:
-        """Focus Far/Near speed in counts/s for variable speed ``p`` (0 slowest … 7 = Direct)."""
-        return self.focus_speed_counts_s * (p + 1) / 8
-
-
-@dataclass(frozen=True, slots=True)
-class Emission:
-    """Bytes the camera puts on the wire, and when their last byte has left it."""
-
-    t: float
-    data: bytes
-
-
-@dataclass(slots=True)
-class DeviceStats:
-    """Counters for tests and the benchmark."""
-
-    packets_in: int = 0
-    packets_out: int = 0
-    bytes_in: int = 0
-    bytes_out: int = 0
-    errors_out: dict[int, int] = field(default_factory=dict)
-    input_overflow: int = 0
-    ignored: int = 0  # packets for another address or not from a controller
-    lost_completions: int = 0
 
 
 class ViscaDevice:
@@ -427,7 +350,7 @@ class ViscaDevice:
                 self._address_set(packet.message[1], t)
                 return
             request = codec.decode_request(packet)
-            _check_model_ranges(request, self.camera)
+            check_model_ranges(request, self.camera)
         except ValueError as exc:  # CodecError, or out of range for this model
             logger.debug("sim camera: syntax error for %s: %s", raw.hex(" "), exc)
             self._send(ErrorReply(0, ErrorCode.SYNTAX), t)
@@ -594,7 +517,7 @@ class ViscaDevice:
                 return "zoom", end, ((st.zoom, counts),)
             case codec_requests.PanTiltDrive():
                 self._supersede("pantilt", t)
-                _drive(st, request, t, self.camera)
+                drive_pan_tilt(st, request, t, self.camera)
                 return None
             case codec_requests.PanTiltAbsolute() | codec_requests.PanTiltRelative():
                 self._supersede("pantilt", t)
@@ -604,27 +527,27 @@ class ViscaDevice:
                     pan_deg = _clamp(st.pan, pan_deg + st.pan.position(t))
                     tilt_deg = _clamp(st.tilt, tilt_deg + st.tilt.position(t))
                 end = max(
-                    st.pan.move_to(pan_deg, _pan_speed(self.camera, request.pan_speed), t),
-                    st.tilt.move_to(tilt_deg, _tilt_speed(self.camera, request.tilt_speed), t),
+                    st.pan.move_to(pan_deg, pan_speed_deg_s(self.camera, request.pan_speed), t),
+                    st.tilt.move_to(tilt_deg, tilt_speed_deg_s(self.camera, request.tilt_speed), t),
                 )
                 return "pantilt", end, ((st.pan, pan_deg), (st.tilt, tilt_deg))
             case codec_requests.PanTiltHome():
                 self._supersede("pantilt", t)
-                return "pantilt", _move_pan_tilt(st, 0.0, 0.0, t, self.camera), _home(st)
+                return "pantilt", move_pan_tilt(st, 0.0, 0.0, t, self.camera), _home(st)
             case codec_requests.PanTiltReset():
                 # Runs to the lower end stops, then home, at full speed.
                 self._supersede("pantilt", t)
-                leg = _move_pan_tilt(st, st.pan.low, st.tilt.low, t, self.camera)
+                leg = move_pan_tilt(st, st.pan.low, st.tilt.low, t, self.camera)
                 first = (st.pan.arrival_time(), st.tilt.arrival_time())
 
                 def second_leg(at: float) -> None:
                     # Only if nothing (cancel, a newer move, power loss) replaced the first leg.
                     with st.lock:
                         if (st.pan.arrival_time(), st.tilt.arrival_time()) == first:
-                            _move_pan_tilt(st, 0.0, 0.0, at, self.camera)
+                            move_pan_tilt(st, 0.0, 0.0, at, self.camera)
 
                 self._schedule(leg, second_leg)
-                return "pantilt", leg + _travel_s(st.pan.low, st.tilt.low, self.camera), _home(st)
+                return "pantilt", leg + travel_s(st.pan.low, st.tilt.low, self.camera), _home(st)
         raise AssertionError(f"unhandled command {request!r}")
 
     def _finish(self, socket: int, token: int, t: float) -> None:
@@ -691,28 +614,6 @@ class ViscaDevice:
         self._tx.append(Emission(end, wire))
 
 
-class VirtualClock:
-    """A clock that only moves when told to: lock-step tests and fast benchmarks."""
-
-    def __init__(self, start: float = 0.0) -> None:
-        self._now = start
-
-    def __call__(self) -> float:
-        """The current virtual time in seconds."""
-        return self._now
-
-    def set(self, t: float) -> None:
-        """Move to ``t`` (never backwards)."""
-        if t < self._now:
-            raise ValueError(f"virtual clock cannot go back from {self._now} to {t}")
-        self._now = t
-
-    def advance(self, dt: float) -> float:
-        """Move forward by ``dt`` seconds; return the new time."""
-        self.set(self._now + dt)
-        return self._now
-
-
 @dataclass(slots=True)
 class _Running:
     token: int
@@ -728,81 +629,7 @@ def _clamp(axis: Axis, value: float) -> float:
     return min(axis.high, max(axis.low, value))
 
 
-def speed_deg_s(code: int) -> float:
-    """Pan/tilt speed in degrees per second for speed code 01…18."""
-    codec_framing.check_range("speed code", code, 1, len(SPEED_TABLE_DEG_S))
-    return SPEED_TABLE_DEG_S[code - 1]
-
-
 def _is_address_set(message: bytes) -> bool:
     # ``30 0w``: w is the first free address; a camera further down the chain sees w > 1, which
     # the codec's AddressSet (always 30 01, as the controller sends it) does not parse.
     return len(message) == 2 and message[0] == 0x30 and 1 <= message[1] <= 7
-
-
-def _check_model_ranges(request: codec_requests.Request, cam: SimModel) -> None:
-    """Raise ValueError for arguments the wire format allows but the camera model does not."""
-    pan_codes, tilt_codes = cam.max_pan_speed_code, cam.max_tilt_speed_code
-    match request:
-        case codec_requests.FocusDirect(counts=counts):
-            codec_framing.check_range("focus counts", counts, *cam.focus_range)
-        case codec_requests.ZoomDirect(counts=counts):
-            codec_framing.check_range("zoom counts", counts, *cam.zoom_range)
-        case codec_requests.PanTiltDrive(pan_speed=pan_speed, tilt_speed=tilt_speed):
-            codec_framing.check_range("pan speed", pan_speed, 1, pan_codes)
-            codec_framing.check_range("tilt speed", tilt_speed, 1, tilt_codes)
-        case codec_requests.PanTiltAbsolute():
-            codec_framing.check_range("pan speed", request.pan_speed, 1, pan_codes)
-            codec_framing.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
-            codec_framing.check_range("pan position", request.pan, *cam.pan_limit_counts)
-            codec_framing.check_range("tilt position", request.tilt, *cam.tilt_limit_counts)
-        case codec_requests.PanTiltRelative():
-            codec_framing.check_range("pan speed", request.pan_speed, 1, pan_codes)
-            codec_framing.check_range("tilt speed", request.tilt_speed, 1, tilt_codes)
-            pan_low, pan_high = cam.pan_limit_counts
-            tilt_low, tilt_high = cam.tilt_limit_counts
-            span_pan, span_tilt = pan_high - pan_low, tilt_high - tilt_low
-            codec_framing.check_range("pan offset", request.pan, -span_pan, span_pan)
-            codec_framing.check_range("tilt offset", request.tilt, -span_tilt, span_tilt)
-        case _:
-            pass
-
-
-def _pan_speed(cam: SimModel, code: int) -> float:
-    codec_framing.check_range("pan speed code", code, 1, cam.max_pan_speed_code)
-    return cam.pan_speeds_deg_s[code - 1]
-
-
-def _tilt_speed(cam: SimModel, code: int) -> float:
-    codec_framing.check_range("tilt speed code", code, 1, cam.max_tilt_speed_code)
-    return cam.tilt_speeds_deg_s[code - 1]
-
-
-def _drive(st: CameraState, request: codec_requests.PanTiltDrive, t: float, cam: SimModel) -> None:
-    pan_dir = {codec_requests.PanDirection.LEFT: -1, codec_requests.PanDirection.RIGHT: 1}.get(
-        request.pan
-    )
-    tilt_dir = {codec_requests.TiltDirection.DOWN: -1, codec_requests.TiltDirection.UP: 1}.get(
-        request.tilt
-    )
-    if pan_dir is None:
-        st.pan.stop(t)
-    else:
-        st.pan.drive(pan_dir, _pan_speed(cam, request.pan_speed), t)
-    if tilt_dir is None:
-        st.tilt.stop(t)
-    else:
-        st.tilt.drive(tilt_dir, _tilt_speed(cam, request.tilt_speed), t)
-
-
-def _move_pan_tilt(
-    st: CameraState, pan_deg: float, tilt_deg: float, t: float, cam: SimModel
-) -> float:
-    return max(
-        st.pan.move_to(pan_deg, cam.pan_speeds_deg_s[-1], t),
-        st.tilt.move_to(tilt_deg, cam.tilt_speeds_deg_s[-1], t),
-    )
-
-
-def _travel_s(pan_deg: float, tilt_deg: float, cam: SimModel) -> float:
-    return max(abs(pan_deg) / cam.pan_speeds_deg_s[-1], abs(tilt_deg) / cam.tilt_speeds_deg_s[-1])

@@ -31,7 +31,8 @@ from collections import OrderedDict, deque
 from types import TracebackType
 from typing import Self, cast
 
-from drivers.sim.device import DeviceConfig, ViscaDevice
+from drivers.sim.device import ViscaDevice
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.faults import Faults, FaultSpec
 from drivers.sim.state import CameraState
 from drivers.visca.ip import (

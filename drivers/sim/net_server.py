@@ -14,7 +14,8 @@ import time
 from types import TracebackType
 from typing import Self
 
-from drivers.sim.device import DeviceConfig, ViscaDevice
+from drivers.sim.device import ViscaDevice
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.faults import Faults, FaultSpec
 from drivers.sim.state import CameraState
 

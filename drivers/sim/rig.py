@@ -1,9 +1,9 @@
 """One builder of the simulated camera: config → clock, camera state, world, renderer, device.
 
 The daemon (live, on ``time.monotonic``), the lock-step bench and ``dffd calibrate --sim`` (both
-in virtual time, on :class:`~drivers.sim.device.VirtualClock`, the one virtual clock) assemble
-the simulated camera here, so the three cannot drift apart. A runner differs only in its clock
-and in how it talks to the device (a pty server, or bytes in virtual time).
+in virtual time, on :class:`~drivers.sim.virtual_clock.VirtualClock`, the one virtual clock)
+assemble the simulated camera here, so the three cannot drift apart. A runner differs only in its
+clock and in how it talks to the device (a pty server, or bytes in virtual time).
 """
 
 from __future__ import annotations
@@ -12,10 +12,12 @@ import time
 from dataclasses import dataclass
 
 from drivers.sim.config import SimCameraConfig
-from drivers.sim.device import DeviceConfig, VirtualClock, ViscaDevice
+from drivers.sim.device import ViscaDevice
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.faults import Faults
 from drivers.sim.source import SimFrameSource, camera_state_for
 from drivers.sim.state import CameraState, Clock
+from drivers.sim.virtual_clock import VirtualClock
 from drivers.sim.world import World
 
 __all__ = ["SimCamera", "build_sim_camera"]

@@ -26,9 +26,11 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
-from drivers.sim.device import DeviceConfig, Emission, VirtualClock, ViscaDevice
+from drivers.sim.device import ViscaDevice
+from drivers.sim.device_types import DeviceConfig, Emission
 from drivers.sim.faults import Faults, FaultSpec
 from drivers.sim.state import CameraState
+from drivers.sim.virtual_clock import VirtualClock
 from drivers.visca import codec, codec_framing, codec_requests
 
 logger = logging.getLogger(__name__)
