@@ -32,6 +32,18 @@ path for ``pan_tilt_search_s`` (a target that left the field of view most likely
 its motion), then returns to the direction where the target was last seen with one absolute move
 and holds there. The core re-searches the frame throughout, so a target that comes back into
 view is re-acquired and followed again.
+
+Why this module is past the ~600-line guideline: it is one state machine and nothing else. The
+frame tagging, the focus and pan/tilt events, the estimator feedback, the burst and rolling-bracket
+steps and the start-up holds of :class:`Scheduler` all read and write the same state (the phase,
+the one focus move in flight, the known and the tracking focus, the plan and σ, the burst being
+executed and its claims, the hold) and keep its invariants together (one focus move at a time,
+settled by its Completion, its failure or a reading; a frame tagged ``burst`` only for a claimed
+slot exposed whole at a known, stationary focus). Spreading its methods over modules (mixins, a
+chain of base classes) would scatter those invariants over files; what is not the state machine,
+its vocabulary and its parts (actions, config, stats, the exposure clock, the focus history, the
+burst ledger, the pan/tilt head and its search sweep, the link budget), is already in the modules
+named above and in :mod:`dffd.scheduler`.
 """
 
 from __future__ import annotations
