@@ -117,7 +117,8 @@ async def _floor(port: int, messages: int, rate: float) -> dict[str, Any]:
 async def _path(port: int, messages: int, rate: float) -> dict[str, Any]:
     """The daemon's hand-off, payload conversion and Publisher, fed from a thread."""
     from dffd.daemon.payloads import Payloads
-    from dffd.mqtt.publisher import Publisher, PublisherSettings
+    from dffd.mqtt.publisher import Publisher
+    from dffd.mqtt.publisher_types import PublisherSettings
     from dffd.mqtt.topics import Topics
 
     topics = Topics(prefix="bench", camera="path")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from dffd.daemon import allocator, app
+from dffd.daemon import allocator, cli
 from dffd.exitcodes import EXIT_USAGE
 
 glibc_only = pytest.mark.skipif(
@@ -43,7 +43,7 @@ def test_dffd_run_configures_the_allocator_before_anything_else(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     # However the daemon is started (systemd unit, `dffd run`, `make run`), it goes through
-    # dffd.daemon.app.run: the settings apply there, even when the run then stops at once.
+    # dffd.daemon.cli.run: the settings apply there, even when the run then stops at once.
     calls: list[Mapping[str, str] | None] = []
 
     def configure(environ: Mapping[str, str] | None = None) -> bool:
@@ -54,5 +54,5 @@ def test_dffd_run_configures_the_allocator_before_anything_else(
     args = argparse.Namespace(
         config=tmp_path / "missing.toml", no_console=True, duration=None, sim_faults=None
     )
-    assert app.run(args) == EXIT_USAGE
+    assert cli.run(args) == EXIT_USAGE
     assert calls == [None]

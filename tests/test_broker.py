@@ -14,7 +14,8 @@ import pytest
 from dffd.daemon.broker import BrokerStartError, EmbeddedBroker
 from dffd.mqtt import schemas
 from dffd.mqtt.models import DepthByEstimator, Estimate
-from dffd.mqtt.publisher import Publisher, PublisherSettings
+from dffd.mqtt.publisher import Publisher
+from dffd.mqtt.publisher_types import PublisherSettings
 from dffd.mqtt.topics import Topics
 
 from .conftest import free_port

@@ -238,7 +238,7 @@ async def test_a_core_command_the_busy_estimator_cannot_apply_is_rejected_with_a
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     from dffd.daemon import commands
-    from dffd.mqtt.publisher import CommandRejected
+    from dffd.mqtt.commands import CommandRejected
 
     monkeypatch.setattr(commands, "CORE_COMMAND_TIMEOUT_S", 0.05)  # shrunk, not slept on
     pipeline = _BlockingPipeline()

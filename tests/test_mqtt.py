@@ -22,6 +22,7 @@ from pydantic import ValidationError
 
 from dffd.config import MqttSection
 from dffd.mqtt import schemas
+from dffd.mqtt.commands import CommandRejected
 from dffd.mqtt.models import (
     Acquire,
     Command,
@@ -35,7 +36,8 @@ from dffd.mqtt.models import (
     Truth,
     parse_command,
 )
-from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
+from dffd.mqtt.publisher import Publisher
+from dffd.mqtt.publisher_types import PublisherSettings
 from dffd.mqtt.topics import Topics, qos, retained
 
 from .conftest import Mosquitto, MosquittoFactory
@@ -359,7 +361,8 @@ async def test_a_status_sent_over_mqtt_says_mqtt_connected(mosquitto: Mosquitto)
 async def test_last_will_marks_killed_client_offline(mosquitto: Mosquitto) -> None:
     script = (
         "import asyncio\n"
-        "from dffd.mqtt.publisher import Publisher, PublisherSettings\n"
+        "from dffd.mqtt.publisher import Publisher\n"
+        "from dffd.mqtt.publisher_types import PublisherSettings\n"
         "from dffd.mqtt.topics import Topics\n"
         "async def main():\n"
         f"    s = PublisherSettings({mosquitto.host!r}, {mosquitto.port}, keepalive_s=5)\n"

@@ -15,7 +15,8 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from dffd.mqtt import models
 from dffd.mqtt.latency import make_estimate
-from dffd.mqtt.publisher import Publisher, PublisherSettings
+from dffd.mqtt.publisher import Publisher
+from dffd.mqtt.publisher_types import PublisherSettings
 from dffd.mqtt.topics import Topics
 from dffd.web.interface import (
     CallbackSource,

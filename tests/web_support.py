@@ -25,7 +25,9 @@ from dffd.core.pipeline import Pipeline, PipelineOutput
 from dffd.core.synthetic import DiscScene, StreamStep, closed_loop, synthetic_lens
 from dffd.core.tracking3d import Track3DEstimate
 from dffd.mqtt import models
-from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
+from dffd.mqtt.commands import CommandRejected
+from dffd.mqtt.publisher import Publisher
+from dffd.mqtt.publisher_types import PublisherSettings
 from dffd.mqtt.topics import Topics
 from dffd.step import CoreStep
 from dffd.web.interface import (

@@ -43,7 +43,7 @@ SUBCOMMANDS: dict[str, Subcommand] = {
     "run": Subcommand(
         "run the service (no config: simulated camera, embedded broker)",
         "dffd.cli.arguments:configure_run",
-        "dffd.daemon.app:run",
+        "dffd.daemon.cli:run",
     ),
     "sim-camera": Subcommand(
         "serve the simulated VISCA camera on a pseudo-terminal, TCP or UDP (--listen)",

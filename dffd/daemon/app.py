@@ -1,4 +1,4 @@
-"""``dffd run``: the daemon — camera, capture, scheduler, estimator thread, MQTT, log, systemd.
+"""The daemon of ``dffd run`` — camera, capture, scheduler, estimator thread, MQTT, log, systemd.
 
 The asyncio shell (design.md §2) only moves bytes, frames and messages; every decision is made by
 the pure :class:`~dffd.scheduler.Scheduler` and the estimation core. Layout at run time:
@@ -24,7 +24,14 @@ console row), :mod:`~dffd.daemon.payloads` (core outputs → MQTT models) and
 :mod:`dffd.wiring`, as the bench and ``dffd replay`` build them.
 
 Start-up (embedded broker, the simulated or real camera, the frame source, camera
-initialisation) is :mod:`~dffd.daemon.startup`.
+initialisation) is :mod:`~dffd.daemon.startup`; the command that runs one :class:`Daemon`
+(arguments, log levels, the terminal) is :mod:`~dffd.daemon.cli`.
+
+:class:`Daemon` is one class of ~560 lines kept whole: its start-up, tasks, result hand-off,
+status and shutdown share what it started (held for orderly shutdown), the wake event, the
+estimator's result buffer and the future that ends the run on a failed result, the publisher,
+the scheduler and the status board; split, each part would reach into the others' state. What
+stands alone is a module of its own (above).
 
 Acquisition (the same live and on the simulator): the lens goes to
 ``scheduler.initial_focus_depth_m``; every frame reaches the core, those of the start-up focus
@@ -39,8 +46,8 @@ the camera's range until the target shows (:mod:`dffd.scheduler.search`; logged 
 
 Shutdown (SIGTERM/SIGINT): stop pan/tilt, publish the retained ``offline`` status, flush the
 JSONL log, say so on the console, exit 0 — all within :data:`SHUTDOWN_TIMEOUT_S`. On a
-terminal the daemon takes the foreground process group while it runs
-(:mod:`dffd.cli.terminal`), so Ctrl-C under ``make run`` stops dffd alone and make returns 0.
+terminal the daemon takes the foreground process group while it runs (:mod:`~dffd.daemon.cli`,
+:mod:`dffd.cli.terminal`), so Ctrl-C under ``make run`` stops dffd alone and make returns 0.
 sd_notify READY is sent once the camera is initialised and frames flow; WATCHDOG pings come
 from the status task only while frames flow.
 
@@ -50,13 +57,11 @@ Exit codes: 0 clean stop, 1 runtime failure (camera, broker, capture, log), 2 co
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import logging
 import os
 import signal
-import sys
 import threading
 import time
 from collections import deque
@@ -64,10 +69,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from dffd.cli import service_log_level
-from dffd.config import DffdConfig, check_run_config
+from dffd.config import DffdConfig
 from dffd.core.lens import Lens, LensError
-from dffd.daemon import allocator
 from dffd.daemon.actuators import Actuators
 from dffd.daemon.commands import Commands
 from dffd.daemon.console import Console, ConsoleSnapshot
@@ -87,9 +90,11 @@ from dffd.daemon.startup import (
 )
 from dffd.daemon.status import StatusBoard, link_health, video_health
 from dffd.daemon.timeline import StartTimeline
-from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
+from dffd.exitcodes import EXIT_FAILURE, EXIT_OK
 from dffd.mqtt import models
-from dffd.mqtt.publisher import CommandRejected, Publisher, PublisherSettings
+from dffd.mqtt.commands import CommandRejected
+from dffd.mqtt.publisher import Publisher
+from dffd.mqtt.publisher_types import PublisherSettings
 from dffd.mqtt.topics import Topics
 from dffd.scheduler import Action, Scheduler, SchedulerConfig, depth_rate_limit
 from dffd.web.interface import Snapshot
@@ -130,44 +135,6 @@ SCHEDULER_MIN_WAIT_S = 0.001
 SCHEDULER_IDLE_S = 0.5
 # Bounded queues (docs/design.md §10: no unbounded queue anywhere).
 RESULT_QUEUE_MAX = 64  # estimator output waiting for the event loop
-
-
-# -- CLI ----------------------------------------------------------------------------------------
-def run(args: argparse.Namespace) -> int:
-    """Run until SIGTERM/SIGINT (or ``--duration``); return the exit code."""
-    allocator.configure()  # before the daemon's threads allocate (see dffd.daemon.allocator)
-    config = getattr(args, "checked_config", None)  # dffd.cli checked it before these imports
-    if config is None:
-        checked = check_run_config(args.config)
-        if isinstance(checked, str):
-            print(checked, file=sys.stderr)
-            return EXIT_USAGE
-        config = checked
-    # [log] level sets dffd's own loggers, unless the command line's -v/-vv asks for more
-    verbose = getattr(args, "verbose", 0)  # dffd's top-level -v (absent: not from dffd.cli)
-    logging.getLogger("dffd").setLevel(service_log_level(config.log.level, verbose))
-    live = not args.no_console and sys.stdout.isatty()
-    if not live and not logging.getLogger().isEnabledFor(logging.INFO):
-        # Without a TTY the status lines are the console; make sure they are visible.
-        logging.getLogger("dffd.daemon.console").setLevel(logging.INFO)
-        logging.getLogger().setLevel(logging.INFO)
-    from drivers.sim.faults import Faults, FaultSpecError
-
-    try:
-        faults = Faults(args.sim_faults) if args.sim_faults else None
-    except FaultSpecError as exc:
-        print(f"dffd run: --sim-faults: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    daemon = Daemon(config, live_console=live, duration_s=args.duration, sim_faults=faults)
-    from dffd.cli.terminal import own_foreground
-
-    # Only with the live view: an operator at the terminal (make run). A daemon a script or a
-    # test starts without the view must leave the terminal's Ctrl-C to its parent.
-    with own_foreground() if live else contextlib.nullcontext(enter_result=False):
-        try:
-            return asyncio.run(daemon.main())
-        except KeyboardInterrupt:
-            return EXIT_OK
 
 
 # -- the daemon -----------------------------------------------------------------------------------
@@ -762,5 +729,4 @@ __all__ = [
     "SHUTDOWN_TIMEOUT_S",
     "Daemon",
     "DaemonError",
-    "run",
 ]

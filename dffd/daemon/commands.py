@@ -10,7 +10,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from dffd.mqtt import models
-from dffd.mqtt.publisher import CommandRejected
+from dffd.mqtt.commands import CommandRejected
 from drivers.visca.errors import ViscaError
 
 if TYPE_CHECKING:

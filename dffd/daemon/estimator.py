@@ -20,7 +20,7 @@ from typing import Any
 
 from dffd.core.pipeline import Pipeline
 from dffd.core.types import FrameTag
-from dffd.mqtt.publisher import CommandRejected
+from dffd.mqtt.commands import CommandRejected
 from dffd.step import CoreStep, StepResult
 from drivers.frames import Frame
 

@@ -1,1 +1,2 @@
-"""MQTT interface (design.md §7): payload models, topics, JSON Schemas and the publisher client."""
+"""MQTT interface (design.md §7): payload models, topics, JSON Schemas, the publisher client and
+the ``…/cmd`` path."""

@@ -23,7 +23,8 @@ import aiomqtt
 
 from dffd.daemon.broker import EmbeddedBroker
 from dffd.mqtt.models import DepthByEstimator, Estimate
-from dffd.mqtt.publisher import Publisher, PublisherSettings
+from dffd.mqtt.publisher import Publisher
+from dffd.mqtt.publisher_types import PublisherSettings
 from dffd.mqtt.topics import Topics
 
 # Connecting to a local broker takes milliseconds; 10 s covers a remote one.

@@ -14,68 +14,56 @@ docs/design.md §7. One :class:`Publisher` per daemon. The daemon hands it paylo
 - on :meth:`stop`, flushes its queue, publishes a retained ``offline`` Status and disconnects.
 
 Everything here runs on the event loop; from another thread use :meth:`publish_threadsafe`.
+
+A command's parsing, validation, handler and reply are :mod:`dffd.mqtt.commands`; the settings
+and the counters :mod:`dffd.mqtt.publisher_types`. :class:`Publisher` is one class of ~520 lines
+kept whole: its connection loop, outbox, backlog, QoS 0 write path and command loop share the
+one client of the current connection, the order of the messages between outbox, paho's queue and
+backlog, and the counters; split, each part would reach into the others' state.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import inspect
-import json
 import logging
 import socket
 import ssl
 import threading
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
 import aiomqtt
 from paho.mqtt.client import MQTT_ERR_SUCCESS, MQTTMessageInfo
-from pydantic import ValidationError
 
 from dffd import __version__
-from dffd.config import MqttSection
+from dffd.mqtt.commands import CommandHandler, execute_command
 from dffd.mqtt.models import (
-    COMMAND_ADAPTER,
-    COMMAND_NAMES,
     Availability,
-    Command,
     CommandReply,
     Estimate,
     Measurement,
     MqttHealth,
-    Ping,
     Status,
     Truth,
     wall_time,
 )
+from dffd.mqtt.publisher_types import PublisherSettings, PublisherStats
 from dffd.mqtt.topics import TopicKind, Topics, qos, retained
 
 __all__ = [
-    "CONNECT_TIMEOUT_S",
     "FLUSH_TIMEOUT_S",
     "PUBLISH_TIMEOUT_S",
-    "CommandHandler",
-    "CommandRejected",
     "Publisher",
-    "PublisherSettings",
-    "PublisherStats",
 ]
 
 _LOGGER = logging.getLogger(__name__)
 
-# Connect + CONNACK: a loopback or LAN broker answers in milliseconds; 10 s (aiomqtt's default)
-# covers a slow TLS handshake without stalling shutdown for long.
-CONNECT_TIMEOUT_S = 10.0
 # PUBACK of a QoS 1 publish (status, replies): same order as the connect round trip.
 PUBLISH_TIMEOUT_S = 5.0
-# A command handler (acquire, home…) only queues work for the scheduler; 5 s is generous.
-COMMAND_TIMEOUT_S = 5.0
 # Draining the publish queue on stop: the queue holds at most queue_max small messages, which a
 # connected client writes in well under a second; systemd's TimeoutStopSec leaves room for 3 s.
 FLUSH_TIMEOUT_S = 3.0
@@ -91,70 +79,6 @@ QOS0_UNSENT_MAX = 32
 QOS0_DRAIN_POLL_S = 0.005
 
 Publishable = Estimate | Measurement | Status | Truth
-CommandResult = dict[str, Any] | None
-# A handler returns the reply's ``result`` (or None), sync or async; CommandRejected refuses.
-CommandHandler = Callable[[Command], Awaitable[CommandResult] | CommandResult]
-
-
-class CommandRejected(Exception):  # noqa: N818 - it is an outcome, not a crash
-    """Raised by a command handler: the command is refused; the message goes into the reply."""
-
-
-@dataclass(frozen=True, slots=True)
-class PublisherSettings:
-    """Connection and buffering parameters (usually built with :meth:`from_config`)."""
-
-    host: str
-    port: int
-    tls: bool = False
-    username: str | None = None
-    password: str | None = None
-    ca_file: Path | None = None
-    certfile: Path | None = None
-    keyfile: Path | None = None
-    keepalive_s: int = 30
-    backlog_max_messages: int = 10_000
-    queue_max_messages: int = 1_000
-    reconnect_min_s: float = 0.5
-    reconnect_max_s: float = 30.0
-    connect_timeout_s: float = CONNECT_TIMEOUT_S
-
-    @classmethod
-    def from_config(cls, config: MqttSection) -> PublisherSettings:
-        """From ``[mqtt]``; reads the password file (raises ConfigError if unreadable)."""
-        endpoint = config.endpoint
-        return cls(
-            host=endpoint.host,
-            port=endpoint.port,
-            tls=endpoint.tls,
-            username=config.username,
-            password=config.read_password(),
-            ca_file=config.ca_file,
-            certfile=config.certfile,
-            keyfile=config.keyfile,
-            keepalive_s=config.keepalive_s,
-            backlog_max_messages=config.backlog_max_messages,
-            queue_max_messages=config.queue_max_messages,
-            reconnect_min_s=config.reconnect_min_s,
-            reconnect_max_s=config.reconnect_max_s,
-        )
-
-
-@dataclass(frozen=True, slots=True)
-class PublisherStats:
-    """Counters since start (all monotonic except ``connected`` and ``backlog``)."""
-
-    connected: bool
-    connects: int  # successful connections
-    connect_failures: int  # failed connection attempts
-    published: int  # messages handed to the broker (incl. replayed)
-    replayed: int  # backlog messages sent after a reconnect
-    backlog: int  # messages waiting in the backlog now
-    backlog_dropped: int  # oldest backlog messages dropped because the backlog was full
-    queue_dropped: int  # oldest queued messages dropped because the queue was full
-    offline_dropped: int  # truth/status messages not kept while offline (status is resent)
-    commands: int  # command messages received
-    commands_failed: int  # of which answered with ok=false
 
 
 @dataclass(frozen=True, slots=True)
@@ -681,59 +605,7 @@ class Publisher:
 
     async def _execute(self, payload: object) -> CommandReply:
         """Parse, validate and run one command; every failure becomes an ``ok: false`` reply."""
-        command_id: str | int | None = None
-        name: str | None = None
-
-        def reply(
-            *, ok: bool, error: str | None = None, result: dict[str, Any] | None = None
-        ) -> CommandReply:
-            return CommandReply(
-                id=command_id, cmd=name, ok=ok, error=error, result=result, t=wall_time()
-            )
-
-        try:
-            data = json.loads(payload if isinstance(payload, bytes | bytearray | str) else b"")
-        except (ValueError, RecursionError) as exc:
-            # RecursionError: nesting deeper than the interpreter's limit (e.g. b"[" * 10**5);
-            # uncaught, it would end the command loop and with it the MQTT client.
-            return reply(
-                ok=False,
-                error=f"payload is not JSON ({exc}); send an object such as "
-                '{"cmd": "ping", "id": 1}',
-            )
-        if not isinstance(data, dict):
-            return reply(ok=False, error='payload must be a JSON object with a "cmd" key')
-        raw_id = data.get("id")
-        if (isinstance(raw_id, str) and len(raw_id) <= 128) or (
-            isinstance(raw_id, int) and not isinstance(raw_id, bool)
-        ):
-            command_id = raw_id
-        if isinstance(data.get("cmd"), str):
-            name = data["cmd"]
-        try:
-            command = COMMAND_ADAPTER.validate_python(data)
-        except ValidationError as exc:
-            return reply(ok=False, error=_describe_command_error(exc, data))
-        if isinstance(command, Ping):
-            return reply(ok=True, result={"t_mono": time.monotonic(), "version": self._version})
-        if self._on_command is None:
-            return reply(ok=False, error=f"this process does not execute {name!r} commands")
-        try:
-            async with asyncio.timeout(COMMAND_TIMEOUT_S):
-                outcome = self._on_command(command)
-                result = await outcome if inspect.isawaitable(outcome) else outcome
-        except CommandRejected as exc:
-            return reply(ok=False, error=str(exc))
-        except TimeoutError:
-            return reply(
-                ok=False, error=f"{name!r} timed out after {COMMAND_TIMEOUT_S:.0f} s; retry"
-            )
-        except Exception as exc:  # a handler bug must not take the client down
-            _LOGGER.exception("command %r failed", name)
-            return reply(
-                ok=False, error=f"internal error in {name!r} ({type(exc).__name__}: {exc})"
-            )
-        return reply(ok=True, result=result)
+        return await execute_command(payload, self._on_command, self._version)
 
 
 def _kind_of(payload: Publishable) -> TopicKind:
@@ -751,21 +623,3 @@ def _replayed(item: _Outgoing) -> _Outgoing:
     if isinstance(payload, Estimate | Measurement):
         return _Outgoing(item.kind, payload.model_copy(update={"replayed": True}))
     return item
-
-
-def _describe_command_error(exc: ValidationError, data: dict[str, Any]) -> str:
-    problems = []
-    for error in exc.errors(include_url=False):
-        kind = error["type"]
-        if kind == "union_tag_not_found":
-            return f'missing "cmd"; use one of {", ".join(COMMAND_NAMES)}'
-        if kind == "union_tag_invalid":
-            return f"unknown command {data.get('cmd')!r}; use one of {', '.join(COMMAND_NAMES)}"
-        field = ".".join(str(part) for part in error["loc"][1:]) or "(command)"
-        if kind == "extra_forbidden":
-            problems.append(f"{field}: unknown field for {data.get('cmd')!r}")
-        elif kind == "missing":
-            problems.append(f"{field}: required")
-        else:
-            problems.append(f"{field}: {error['msg']} (got {error.get('input')!r})")
-    return "; ".join(problems)
