@@ -23,7 +23,8 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 
 # Core commands wait at most this long for the estimator thread to apply them (it is between
-# two frames within ~1 ms unless it is behind; 2 s stays under the publisher's own 5 s bound).
+# two frames within ~1 ms unless it is behind; 2 s stays under the command path's own 5 s bound,
+# dffd.mqtt.commands.COMMAND_TIMEOUT_S).
 CORE_COMMAND_TIMEOUT_S = 2.0
 
 __all__ = ["CORE_COMMAND_TIMEOUT_S", "Commands", "apply_to_core"]

@@ -62,7 +62,8 @@ __all__ = [
 
 _LOGGER = logging.getLogger(__name__)
 
-# PUBACK of a QoS 1 publish (status, replies): same order as the connect round trip.
+# PUBACK of a QoS 1 publish (status, replies): same order as the connect round trip
+# (publisher_types.CONNECT_TIMEOUT_S).
 PUBLISH_TIMEOUT_S = 5.0
 # Draining the publish queue on stop: the queue holds at most queue_max small messages, which a
 # connected client writes in well under a second; systemd's TimeoutStopSec leaves room for 3 s.
