@@ -23,7 +23,7 @@ logger = logging.getLogger(__name__)
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``python -m hil``."""
-    from hil.benchmarks import PARTS as BENCH_PARTS
+    from hil.bench_figures import PARTS as BENCH_PARTS
     from hil.scenario import OPTICS_MODELS, SCENARIO_NAMES
 
     parser = argparse.ArgumentParser(
@@ -189,7 +189,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             return compare_main(args.a, args.b)
         if args.command == "table":
-            from hil.report import accuracy_table, load_report, markdown_table
+            from hil.report import load_report
+            from hil.report_tables import accuracy_table, markdown_table
 
             loaded = [load_report(p) for p in args.reports]
             print(accuracy_table(loaded) if args.accuracy else markdown_table(loaded))

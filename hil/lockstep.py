@@ -20,6 +20,9 @@ tags and the lens table; the bench alone reads the simulator's ground truth to s
 Two other policies run on the same scenario and seed for the baselines that need their own frames:
 ``sweep`` (classic depth from focus: full focus sweeps, one clean frame per setting) and the
 ArUco pass (the dffd policy with the target swapped for an ArUco marker).
+
+The actions' executor is :mod:`hil.lockstep_executor`, the focus sweeps' own policies
+:mod:`hil.lockstep_sweep`.
 """
 
 from __future__ import annotations
@@ -30,13 +33,12 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
 import numpy as np
 
-from dffd.actuation import completion_timeout_s, report_done, report_failed, request_for
+from dffd.actuation import report_done, report_failed
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.core.pipeline import PipelineConfig, PipelineOutput
@@ -58,16 +60,15 @@ from dffd.wiring import scheduler_config as service_scheduler_config
 from drivers.frames import Frame
 from drivers.sim.source import FrameTruth
 from drivers.sim.virtual_bus import VirtualBus
-from drivers.visca.camera import MOVE_TIMEOUT_MARGIN_S, CameraProfile, profile_for
-from drivers.visca.session_types import Answered, Completed, Failed, NetworkChanged
+from drivers.visca.camera import profile_for
 from hil.baselines import (
     ArucoBaseline,
     find_blob,
     known_size_depth,
     square_side_for_size,
-    sweep_depth,
-    tenengrad,
 )
+from hil.lockstep_executor import ActionExecutor, ActionOutcome
+from hil.lockstep_sweep import CoarseFineState, SweepState
 from hil.results import BurstRecord, RunResult
 from hil.scenario import Scenario, TrajectorySpec
 from hil.simbuild import T_FIRST_FRAME_S, SimSession, build_session
@@ -82,11 +83,6 @@ Progress = Callable[[float], None]  # fraction of the session's scenario time do
 
 # Ground truth per frame kept for scoring measurements of past bursts.
 TRUTH_HISTORY_FRAMES = 256
-# Sweep window half-size (px) around the target: this many equivalent radii plus a margin, so the
-# whole defocused edge stays inside (largest blur radius at the range ends ≈ target radius).
-SWEEP_WINDOW_RADII = 2.5
-SWEEP_WINDOW_MARGIN_PX = 12
-SWEEP_INITIAL_HALF_PX = 120
 
 
 def run_session(
@@ -190,7 +186,7 @@ class _Runner:
         dcfg = daemon_config()
         # The driver's profile of the configured model converts degrees and speed codes.
         self.profile = profile_for(dcfg.camera.model)
-        self.link = _Executor(VirtualBus(self.device), self.profile, self._network_changed)
+        self.link = ActionExecutor(VirtualBus(self.device), self.profile, self._network_changed)
         # Every 3D tracker kind on the same frames: MMAE (published) against IMM and lone CV.
         self.core = CoreStep.build(pipeline_config(scenario, dcfg), self.lens, TRACKER_KINDS)
         self.pipeline = self.core.pipeline
@@ -226,10 +222,10 @@ class _Runner:
                 frame_size=session.frame_size,
             )
         b = scenario.baselines
-        self._sweep: _SweepState = (
-            _CoarseFineState(self.lens, b.coarse_settings, b.fine_settings)
+        self._sweep: SweepState = (
+            CoarseFineState(self.lens, b.coarse_settings, b.fine_settings)
             if policy == "coarse_fine"
-            else _SweepState(self.lens, b.full_sweep_settings)
+            else SweepState(self.lens, b.full_sweep_settings)
         )
         self._sweep_baseline = "coarse_fine" if policy == "coarse_fine" else "full_sweep"
         self._sweep.exposure_s = session.exposure_s
@@ -302,7 +298,7 @@ class _Runner:
         self.scheduler.invalidate_focus(now)
         self.scheduler.on_pan_tilt_failed(now)
 
-    def _dispatch(self, outcome: _Outcome) -> None:
+    def _dispatch(self, outcome: ActionOutcome) -> None:
         action = outcome.action
         if self.policy in SWEEPS and isinstance(action, FocusMove):
             # The sweep's own focus moves (the scheduler's were swallowed, see _act).
@@ -483,221 +479,6 @@ class _Runner:
                 "detections": self._aruco.detections,
                 "misses": self._aruco.misses,
             }
-
-
-@dataclass(frozen=True, slots=True)
-class _Outcome:
-    """How ``action`` ended at ``t``: done (with an inquiry's ``answer``) or failed."""
-
-    action: Action
-    t: float
-    ok: bool
-    answer: object = None
-
-
-class _Executor:
-    """Scheduler actions on the VISCA session in virtual time: the service's translation
-    (:func:`dffd.actuation.request_for`) in, the session's events out as outcomes.
-
-    All reply matching is the session's (:mod:`drivers.visca.session`); this only remembers
-    which action each ticket carries.
-    """
-
-    def __init__(
-        self, bus: VirtualBus, profile: CameraProfile, on_network_change: Callable[[float], None]
-    ) -> None:
-        self.bus = bus
-        self.profile = profile
-        self._on_network_change = on_network_change  # the bus re-addressed the camera
-        self._actions: dict[int, Action] = {}
-        self.commands_sent = 0
-
-    def send(self, action: Action, now: float) -> list[_Outcome]:
-        """Submit ``action`` at ``now`` (one outside the camera's ranges fails at once)."""
-        try:
-            request = request_for(action, self.profile)
-        except ValueError as exc:
-            logger.debug("action %r not sent: %s", action, exc)
-            return [_Outcome(action, now, ok=False)]
-        timeout = completion_timeout_s(request, self.profile, MOVE_TIMEOUT_MARGIN_S)
-        ticket = self.bus.submit(request, now, completion_timeout=timeout)
-        self._actions[ticket] = action
-        self.commands_sent += 1
-        return []
-
-    def next_deadline(self) -> float | None:
-        """When the session or the device next has something to do."""
-        return self.bus.next_deadline()
-
-    def poll(self, now: float) -> list[_Outcome]:
-        """Advance to ``now``; the outcomes of finished actions, in time order."""
-        outcomes: list[_Outcome] = []
-        for event in self.bus.poll(now):
-            if isinstance(event, NetworkChanged):
-                self._on_network_change(event.t)
-                continue
-            if not isinstance(event, Completed | Answered | Failed):
-                continue  # Acked: the command runs
-            action = self._actions.pop(event.ticket, None)
-            if action is None:
-                continue
-            if isinstance(event, Failed):
-                logger.debug("VISCA %r failed at %.3f: %s", action, event.t, event.error)
-                outcomes.append(_Outcome(action, event.t, ok=False))
-            else:
-                answer = event.value if isinstance(event, Answered) else None
-                outcomes.append(_Outcome(action, event.t, ok=True, answer=answer))
-        return outcomes
-
-
-class _SweepState:
-    """Classic depth from focus: a boustrophedon sweep over the focus range, one frame a step."""
-
-    def __init__(self, lens: Lens, n: int) -> None:
-        lo, hi = lens.counts_range
-        self.lens = lens
-        self.n = n
-        self.settings = [round(c) for c in np.linspace(lo, hi, n)]
-        self.forward = True
-        self.step = 0
-        self.move_id = 10_000_000  # distinct from the scheduler's ids
-        self.moving: int | None = None
-        self.settled_at: float | None = None
-        self.claim_after: float | None = None
-        self.wakeup: float | None = 0.0
-        self.samples: list[tuple[int, float, float, float]] = []  # counts, sharpness, t, truth
-        self.half_px = SWEEP_INITIAL_HALF_PX
-        self.completed = 0
-        self.margin_s = 0.003
-        self.exposure_s = 0.0
-        self.current: int | None = None
-
-    @property
-    def frames_per_depth(self) -> int:
-        """Clean frames one depth costs."""
-        return self.n
-
-    def order(self) -> list[int]:
-        return self.settings if self.forward else self.settings[::-1]
-
-    def next_move(self, now: float) -> FocusMove | None:
-        if self.moving is not None or self.claim_after is not None:
-            return None
-        if self.wakeup is None or now < self.wakeup:
-            return None
-        target = self.order()[self.step]
-        self.move_id += 1
-        self.moving = self.move_id
-        self.wakeup = None
-        return FocusMove(self.move_id, target)
-
-    def on_done(self, move_id: int, t: float) -> None:
-        if move_id != self.moving:
-            return
-        self.moving = None
-        self.current = self.order()[self.step]
-        self.claim_after = t + self.margin_s
-
-    def on_failed(self, move_id: int, t: float) -> None:
-        if move_id == self.moving:
-            self.moving = None
-            self.wakeup = t
-
-    def tag(self, t_mid: float, sched_tag: FrameTag) -> FrameTag:
-        half = self.exposure_s / 2.0
-        clean = (
-            self.claim_after is not None
-            and self.current is not None
-            and t_mid - half >= self.claim_after
-        )
-        if clean:
-            return FrameTag("burst", self.current, sched_tag.pan_deg, sched_tag.tilt_deg, None)
-        return FrameTag("transit", None, sched_tag.pan_deg, sched_tag.tilt_deg, None)
-
-    def on_frame(
-        self,
-        frame: Frame,
-        tag: FrameTag,
-        blob: tuple[float, float, float] | None,
-        truth_z: float,
-    ) -> tuple[float, float | None, float] | None:
-        if tag.role != "burst" or tag.focus_counts is None:
-            return None
-        centre = (frame.image.shape[1] / 2.0, frame.image.shape[0] / 2.0)
-        if blob is not None:
-            centre = (blob[0], blob[1])
-        sharp = tenengrad(frame.image, centre, self.half_px)
-        self.samples.append((tag.focus_counts, sharp, frame.t, truth_z))
-        # Next setting as soon as this exposure is over.
-        self.claim_after = None
-        self.wakeup = frame.t + self.exposure_s / 2.0 + self.margin_s
-        self.step += 1
-        if self.step < self.n:
-            return None
-        samples, self.samples = self.samples, []
-        self.step = 0
-        self.forward = not self.forward
-        self.completed += 1
-        counts = [s[0] for s in samples]
-        sharpness = [s[1] for s in samples]
-        z = sweep_depth(counts, sharpness, self.lens)
-        peak = samples[int(np.argmax(sharpness))]
-        if blob is not None:
-            self.half_px = int(SWEEP_WINDOW_RADII * blob[2] + SWEEP_WINDOW_MARGIN_PX)
-        return peak[2], z, peak[3]
-
-
-class _CoarseFineState(_SweepState):
-    """Krotkov-style coarse-to-fine search with the full sweep's sharpness measure: a coarse
-    pass over the whole range, then a fine pass over ± one coarse step around the coarse peak;
-    the depth comes from the fine pass (parabola through ln sharpness, as the full sweep)."""
-
-    def __init__(self, lens: Lens, coarse: int, fine: int) -> None:
-        super().__init__(lens, coarse)
-        self.coarse = list(self.settings)
-        self.fine_n = fine
-        self.stage = "coarse"
-
-    @property
-    def frames_per_depth(self) -> int:
-        return len(self.coarse) + self.fine_n
-
-    def on_frame(
-        self,
-        frame: Frame,
-        tag: FrameTag,
-        blob: tuple[float, float, float] | None,
-        truth_z: float,
-    ) -> tuple[float, float | None, float] | None:
-        if self.stage == "fine":
-            done = super().on_frame(frame, tag, blob, truth_z)
-            if done is not None:  # back to a coarse pass (in the direction the fine one ended)
-                self.stage, self.settings, self.n = "coarse", self.coarse, len(self.coarse)
-            return done
-        if tag.role != "burst" or tag.focus_counts is None:
-            return None
-        centre = (frame.image.shape[1] / 2.0, frame.image.shape[0] / 2.0)
-        if blob is not None:
-            centre = (blob[0], blob[1])
-        self.samples.append(
-            (tag.focus_counts, tenengrad(frame.image, centre, self.half_px), frame.t, truth_z)
-        )
-        self.claim_after = None
-        self.wakeup = frame.t + self.exposure_s / 2.0 + self.margin_s
-        self.step += 1
-        if self.step < self.n:
-            return None
-        samples, self.samples = self.samples, []
-        peak = max(samples, key=lambda s: s[1])[0]
-        lo, hi = self.lens.counts_range
-        span = (hi - lo) / max(len(self.coarse) - 1, 1)
-        a, b = max(lo, peak - span), min(hi, peak + span)
-        self.settings = [round(c) for c in np.linspace(a, b, self.fine_n)]
-        self.n, self.step, self.stage = self.fine_n, 0, "fine"
-        self.forward = not self.forward  # back from the end the coarse pass reached
-        if blob is not None:
-            self.half_px = int(SWEEP_WINDOW_RADII * blob[2] + SWEEP_WINDOW_MARGIN_PX)
-        return None
 
 
 def _parabola(v: tuple[float, ...], g: tuple[float, ...]) -> tuple[float, float, float] | None:

@@ -16,7 +16,9 @@ from dffd.recording import RecordingWriter
 from drivers.frames import Frame
 from drivers.sim.source import FrameTruth
 from hil.calibration import Calibration, calibrated_lens
-from hil.report import build_report, format_table, write_plots, write_report
+from hil.report import build_report, write_report
+from hil.report_plots import write_plots
+from hil.report_tables import format_table
 from hil.results import RunResult
 from hil.scenario import Scenario
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from hil.bench_cli import measure as measure_help
+from hil.bench_figures import figures_from
 from hil.bench_table import END, SNAPSHOT, START, readme_table, replace_block, write_readme
-from hil.benchmarks import figures_from
 from hil.soak import thread_shares
 
 REPO = Path(__file__).resolve().parent.parent

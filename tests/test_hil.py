@@ -266,7 +266,8 @@ def test_soak_writes_its_figures_and_plot(tmp_path: Path) -> None:
 def test_optics_flag_and_seed_list_give_a_spread_over_seeds(tmp_path: Path) -> None:
     """--optics aberrated renders with the second optics model and tells the estimator that
     model's own lens table; --seeds runs each seed and the report gives mean and spread."""
-    from hil.report import accuracy_table, load_report, markdown_table
+    from hil.report import load_report
+    from hil.report_tables import accuracy_table, markdown_table
     from hil.simbuild import build_session
 
     scenario = tmp_path / "short-static.toml"
