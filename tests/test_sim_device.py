@@ -10,9 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.sim.device import INPUT_QUEUE_PACKETS, RX_WIRE_MAX_BYTES
-from drivers.sim.device_motors import speed_deg_s
+from drivers.sim.device_motors import pan_speed_deg_s, tilt_speed_deg_s
 from drivers.sim.device_types import (
-    COUNTS_PER_DEGREE,
     DEFAULT_FOCUS_SPEED_COUNTS_S,
     DEFAULT_ZOOM_SPEED_COUNTS_S,
     FIELD_PERIOD_S,
@@ -20,6 +19,7 @@ from drivers.sim.device_types import (
     Emission,
 )
 from drivers.sim.faults import Faults, FaultSpec, FaultSpecError
+from drivers.sim.models import EVI_D100
 from drivers.sim.server import InProcessCamera, packets
 from drivers.sim.virtual_clock import VirtualClock
 from drivers.visca import codec, codec_replies, codec_requests
@@ -147,8 +147,8 @@ def test_pan_tilt_absolute_arrives_after_distance_over_speed(
         0
     ].t
     t_done = run_to_completion(cam, 1, limit_s=200.0)
-    pan_s = abs(pan) / COUNTS_PER_DEGREE / speed_deg_s(pan_speed)
-    tilt_s = abs(tilt) / COUNTS_PER_DEGREE / speed_deg_s(tilt_speed)
+    pan_s = abs(pan) / EVI_D100.pan_counts_per_deg / pan_speed_deg_s(EVI_D100, pan_speed)
+    tilt_s = abs(tilt) / EVI_D100.tilt_counts_per_deg / tilt_speed_deg_s(EVI_D100, tilt_speed)
     assert max(pan_s, tilt_s) <= t_done - t_ack <= max(pan_s, tilt_s) + V + 1e-9
     reply = cam.exchange(codec_requests.PanTiltPositionInquiry())
     data = codec.decode_reply(Packet.from_bytes(reply[0].data))
@@ -157,8 +157,8 @@ def test_pan_tilt_absolute_arrives_after_distance_over_speed(
         pan, tilt
     )
     snap = cam.state.snapshot()
-    assert snap.pan_deg == pytest.approx(pan / COUNTS_PER_DEGREE)
-    assert snap.tilt_deg == pytest.approx(tilt / COUNTS_PER_DEGREE)
+    assert snap.pan_deg == pytest.approx(pan / EVI_D100.pan_counts_per_deg)
+    assert snap.tilt_deg == pytest.approx(tilt / EVI_D100.tilt_counts_per_deg)
 
 
 def test_pan_tilt_relative_adds_to_the_position_and_clamps_at_the_end_stop() -> None:
@@ -183,8 +183,8 @@ def test_pan_tilt_drive_completes_at_once_and_moves_until_stopped() -> None:
     snap = cam.state.snapshot()
     assert snap.pan_tilt_moving
     elapsed = cam.now() - t_start
-    assert snap.pan_deg == pytest.approx(speed_deg_s(0x0A) * elapsed)
-    assert snap.tilt_deg == pytest.approx(-speed_deg_s(0x05) * elapsed)
+    assert snap.pan_deg == pytest.approx(pan_speed_deg_s(EVI_D100, 0x0A) * elapsed)
+    assert snap.tilt_deg == pytest.approx(-tilt_speed_deg_s(EVI_D100, 0x05) * elapsed)
     stop = cam.exchange(codec_requests.PanTiltDrive.stop(), within_s=0.02)
     assert hexes(stop) == ["90 41 FF", "90 51 FF"]
     held = cam.state.snapshot().pan_deg

@@ -30,19 +30,13 @@ from drivers.sim.optics import Optics, TargetImage, render_patch, world_from_cam
 from drivers.sim.resources import reference_camera_file
 from drivers.sim.source import SimFrameSource, camera_state_for
 from drivers.sim.state import CameraState
+from drivers.sim.virtual_clock import VirtualClock
 from drivers.sim.world import World, boundary_samples, make_shape, make_trajectory, rms_radius
 
 SIM_CONFIG = reference_camera_file()
 LENS_FILE = lens_table("sim-evi-d100")
+CLOCK_START_S = 100.0  # virtual time a scene starts at
 FRAME_TIMEOUT_S = 5.0  # generous bound on a live frame at 30 fps (3 periods + latency ≈ 0.15 s)
-
-
-class VirtualClock:
-    def __init__(self, t: float = 100.0) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +56,7 @@ def _scene(
     world: WorldConfig,
     clock: VirtualClock | None = None,
 ) -> tuple[SimFrameSource, CameraState, VirtualClock]:
-    clock = clock or VirtualClock()
+    clock = clock or VirtualClock(CLOCK_START_S)
     state = camera_state_for(config, clock=clock)
     source = SimFrameSource.from_config(config, state, World.from_config(world))
     return source, state, clock
@@ -193,7 +187,7 @@ def _sweep(config: SimCameraConfig, z: float, dv_mm: np.ndarray) -> tuple[np.nda
     v_true = optics.sharp_v_mm(z, zoom)
     costs, truths = [], []
     for i, dv in enumerate(dv_mm):
-        state.focus.jump(_counts_for_v0(optics, v_true + dv, zoom), clock.t)
+        state.focus.jump(_counts_for_v0(optics, v_true + dv, zoom), clock())
         frame = source.render_frame(i)
         truth = source.truth_for(i)
         assert truth is not None
@@ -270,13 +264,13 @@ def test_pan_right_moves_the_target_left_and_tilt_up_moves_it_down(reference) ->
     u0, v0 = _centroid(source.render_frame(0).image)
     assert (u0, v0) == pytest.approx(source.optics.principal_point_px, abs=0.05)
 
-    state.pan.jump(1.0, clock.t)
+    state.pan.jump(1.0, clock())
     u1, v1 = _centroid(source.render_frame(1).image)
     assert u1 - u0 == pytest.approx(-f_px * math.tan(math.radians(1.0)), rel=0.01)
     assert v1 == pytest.approx(v0, abs=0.05)
 
-    state.pan.jump(0.0, clock.t)
-    state.tilt.jump(1.0, clock.t)
+    state.pan.jump(0.0, clock())
+    state.tilt.jump(1.0, clock())
     u2, v2 = _centroid(source.render_frame(2).image)
     assert v2 - v0 == pytest.approx(f_px * math.tan(math.radians(1.0)), rel=0.01)
     assert u2 == pytest.approx(u0, abs=0.05)
@@ -301,8 +295,8 @@ def test_truth_is_consistent_with_the_thin_lens_and_the_state(reference) -> None
     config = _quiet(reference)
     source, state, clock = _scene(config, _static(6.0, x=0.5, y=-0.1))
     optics = source.optics
-    state.focus.jump(0x2000, clock.t)
-    state.pan.jump(3.0, clock.t)
+    state.focus.jump(0x2000, clock())
+    state.pan.jump(3.0, clock())
     source.render_frame(7)
     truth = source.truth_for(7)
     assert truth is not None
@@ -327,14 +321,14 @@ def test_truth_is_consistent_with_the_thin_lens_and_the_state(reference) -> None
 def test_transit_frames_and_focus_jitter_are_recorded(reference) -> None:
     config = with_overrides(_quiet(reference), {"lens.focus_jitter_counts": 5.0})
     source, state, clock = _scene(config, _static(4.0))
-    clock.t = source.frame_time(0)
+    clock.set(source.frame_time(0))
     move_s = 0.002  # starts 1 ms before mid-exposure, lands within the 4 ms exposure
-    state.focus.move_to(0x3000, speed=(0x3000 - 0x1000) / move_s, t=clock.t - 0.001)
+    state.focus.move_to(0x3000, speed=(0x3000 - 0x1000) / move_s, t=clock() - 0.001)
     source.render_frame(0)
     first = source.truth_for(0)
     assert first is not None
     assert first.focus_moving
-    clock.t = source.frame_time(1)
+    clock.set(source.frame_time(1))
     source.render_frame(1)
     source.render_frame(2)
     settled, still = source.truth_for(1), source.truth_for(2)
@@ -348,12 +342,12 @@ def test_transit_frames_and_focus_jitter_are_recorded(reference) -> None:
 
 def test_focus_oracle_gives_the_counts_that_make_the_target_sharp(reference) -> None:
     source, state, clock = _scene(_quiet(reference), _static(4.0))
-    state.focus.jump(source.focus_oracle(clock.t), clock.t)
+    state.focus.jump(source.focus_oracle(clock()), clock())
     source.render_frame(0)
     truth = source.truth_for(0)
     assert truth is not None
     assert truth.blur_radius_px == pytest.approx(0.0, abs=1e-6)
-    assert source.focus_oracle(clock.t) == pytest.approx(truth.focus_counts)
+    assert source.focus_oracle(clock()) == pytest.approx(truth.focus_counts)
 
 
 def test_truth_table_is_bounded(reference) -> None:
@@ -536,7 +530,7 @@ async def test_live_source_counts_frames_lost_while_the_loop_stalled(reference) 
         CaptureConfig(queue_frames=2),
     )
     await source.start()
-    clock.t += 1.0  # a one-second stall before the first delivery
+    clock.advance(1.0)  # a one-second stall before the first delivery
     try:
         async with asyncio.timeout(FRAME_TIMEOUT_S):
             frame = await source.next_frame()

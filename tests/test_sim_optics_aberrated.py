@@ -25,15 +25,10 @@ from drivers.sim.optics import Optics
 from drivers.sim.optics_aberrated import AberratedOptics
 from drivers.sim.outline import irregular_unit_outline
 from drivers.sim.source import SimFrameSource, camera_state_for
+from drivers.sim.virtual_clock import VirtualClock
 from drivers.sim.world import World, boundary_samples, make_shape, rms_radius
 
-
-class VirtualClock:
-    def __init__(self, t: float = 100.0) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
+CLOCK_START_S = 100.0  # virtual time a scene starts at
 
 
 def _config(**overrides: object) -> SimCameraConfig:
@@ -42,7 +37,7 @@ def _config(**overrides: object) -> SimCameraConfig:
 
 
 def _source(config: SimCameraConfig) -> tuple[SimFrameSource, VirtualClock]:
-    clock = VirtualClock()
+    clock = VirtualClock(CLOCK_START_S)
     state = camera_state_for(config, clock=clock)
     return SimFrameSource.from_config(config, state), clock
 
@@ -57,12 +52,12 @@ def _moments(kernel: np.ndarray) -> tuple[float, float, float]:
 def _focus_on(source: SimFrameSource, clock: VirtualClock, defocus_px: float, z: float) -> None:
     optics = source.optics
     assert isinstance(optics, AberratedOptics)
-    zoom = source.state.snapshot(clock.t).zoom_counts
+    zoom = source.state.snapshot(clock()).zoom_counts
     v = optics.sharp_v_mm(z, zoom)
     v0 = v + defocus_px / optics.signed_defocus_px(v + 1.0, v, zoom)
     f = optics.focal_length_mm(zoom)
     power = (1.0 / f - 1.0 / v0) * 1000.0
-    source.state.focus.jump(optics.focus_counts_for_depth(1.0 / power), clock.t)
+    source.state.focus.jump(optics.focus_counts_for_depth(1.0 / power), clock())
 
 
 def test_default_model_is_the_reference_and_the_config_selects_the_aberrated_one() -> None:
@@ -143,7 +138,7 @@ def test_blur_grows_with_defocus_on_both_sides() -> None:
     def edge_spread(defocus: float) -> float:
         """Variance of the edge-derivative profile across the target's left edge."""
         _focus_on(source, clock, defocus, 4.0)
-        img, truth = source.render(clock.t)
+        img, truth = source.render(clock())
         x_edge = round(truth.centre_px[0] - truth.r_px)
         rows = img[236:245, x_edge - 30 : x_edge + 31].astype(np.float64).mean(axis=0)
         deriv = np.diff(rows)
@@ -160,17 +155,17 @@ def test_background_wall_is_textured_blurred_by_its_defocus_and_fixed_in_the_wor
     config = _config(**{"sensor.read_noise_dn": 0.0, "sensor.gain_e_per_dn": 0.0})
     source, clock = _source(config)
     _focus_on(source, clock, 0.0, config.optics.background_depth_m)  # wall in focus
-    sharp = source.render(clock.t)[0].astype(np.float32)
+    sharp = source.render(clock())[0].astype(np.float32)
     corner = (slice(0, 120), slice(0, 160))  # away from the target at the centre
     assert sharp[corner].std() > 1.5
     _focus_on(source, clock, 0.0, 2.0)  # focused near: the wall blurs
-    blurred = source.render(clock.t)[0].astype(np.float32)
+    blurred = source.render(clock())[0].astype(np.float32)
     assert blurred[corner].std() < 0.7 * sharp[corner].std()
     # pan right by ~10 px: the wall moves left by as much
     _focus_on(source, clock, 0.0, config.optics.background_depth_m)
     scale = config.lens.zoom_table[-1][1] / config.sensor.pixel_pitch_mm
-    source.state.pan.jump(math.degrees(10.0 / scale), clock.t)
-    panned = source.render(clock.t)[0].astype(np.float32)
+    source.state.pan.jump(math.degrees(10.0 / scale), clock())
+    panned = source.render(clock())[0].astype(np.float32)
     assert np.allclose(panned[0:120, 0:150], sharp[0:120, 10:160], atol=1.01)
 
 

@@ -14,7 +14,8 @@ import logging
 
 import pytest
 
-from drivers.sim.device_types import MODEL_EVI_D70, DeviceConfig
+from drivers.sim import models as sim_models
+from drivers.sim.device_types import DeviceConfig
 from drivers.sim.faults import Faults
 from drivers.sim.ip_server import SimUdpServer
 from drivers.sim.server import SimCameraServer
@@ -32,6 +33,8 @@ from tests.visca_support import FAST, sim_camera
 
 # A device that does not echo the broadcast IF_Clear costs one broadcast timeout at start-up.
 SILENT_BROADCAST = dataclasses.replace(FAST, broadcast_s=0.2)
+# The simulated EVI-D100 identifying as an EVI-D70: the simulator's model code, not the profile's.
+REPORTS_EVI_D70 = DeviceConfig(model=sim_models.EVI_D70.model)
 
 
 # (call, the error it must raise): value, limit and model named.
@@ -94,7 +97,7 @@ async def test_the_model_the_camera_reports_picks_its_profile(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     caplog.set_level(logging.WARNING, logger="drivers.visca.camera")
-    async with sim_camera(DeviceConfig(model=MODEL_EVI_D70), profile=EVI_D100) as (_, _, camera):
+    async with sim_camera(REPORTS_EVI_D70, profile=EVI_D100) as (_, _, camera):
         assert camera.profile is EVI_D70
         assert camera.version_info is not None
     assert "identifies as the EVI-D70" in caplog.text
@@ -107,7 +110,7 @@ async def test_the_daemon_refuses_a_camera_of_another_model_than_configured() ->
     says which model to configure instead. The configured model, or an unknown one, passes."""
     from dffd.daemon.startup import camera_model_problem
 
-    async with sim_camera(DeviceConfig(model=MODEL_EVI_D70), profile=EVI_D100) as (_, _, camera):
+    async with sim_camera(REPORTS_EVI_D70, profile=EVI_D100) as (_, _, camera):
         problem = camera_model_problem(camera, "evi-d100")
         assert camera_model_problem(camera, "evi-d70") is None
     assert problem is not None

@@ -22,16 +22,17 @@ time line:
   ``z0 60 02 FF``; packets longer than 16 bytes: message length ``z0 60 01 FF``; manual focus
   commands while AF is on, and motion commands in standby: not executable ``z0 6y 41 FF`` *instead
   of* the ACK, ``y`` being the socket the command would have taken (no socket is held).
-* **Motors** move :class:`~drivers.sim.state.CameraState` axes: pan/tilt in degrees at the speed
-  table, focus and zoom in counts at finite speeds (the defaults in :mod:`drivers.sim.device_types`
-  are assumptions: the EVI-D100 manual gives no motor speeds).
+* **Motors** move :class:`~drivers.sim.state.CameraState` axes: pan/tilt in degrees at the camera
+  model's speed tables, focus and zoom in counts at finite speeds (the defaults in
+  :mod:`drivers.sim.device_types` are assumptions: the EVI-D100 manual gives no motor speeds).
 
 Directions: pan right and tilt up are positive (pan position 0xFA60 is the left end stop); Focus
 Far moves towards 0x1000 (far end), Near towards 0x8400.
 
-The model constants, :class:`~drivers.sim.device_types.DeviceConfig`, the
+The device's constants, :class:`~drivers.sim.device_types.DeviceConfig`, the
 :class:`~drivers.sim.device_types.Emission` and the counters live in
-:mod:`drivers.sim.device_types` (import them from there); the motors' limits and moves for the
+:mod:`drivers.sim.device_types` (import them from there); the camera model's facts (limits,
+speed tables, identity) in :mod:`drivers.sim.models`; the motors' limits and moves for the
 camera model in :mod:`drivers.sim.device_motors`. What is left is the one class
 :class:`ViscaDevice` (~515 lines), a little past ~600 lines with its imports: its wire, time line,
 input, handlers and output share the sockets, the event heap, the queues and the power epoch, and

@@ -8,16 +8,9 @@ its travel time. :class:`~drivers.sim.device.ViscaDevice` calls them when it car
 
 from __future__ import annotations
 
-from drivers.sim.device_types import SPEED_TABLE_DEG_S
 from drivers.sim.models import SimModel
 from drivers.sim.state import CameraState
 from drivers.visca import codec_framing, codec_requests
-
-
-def speed_deg_s(code: int) -> float:
-    """Pan/tilt speed in degrees per second for speed code 01…18."""
-    codec_framing.check_range("speed code", code, 1, len(SPEED_TABLE_DEG_S))
-    return SPEED_TABLE_DEG_S[code - 1]
 
 
 def check_model_ranges(request: codec_requests.Request, cam: SimModel) -> None:

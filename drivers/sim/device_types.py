@@ -1,8 +1,10 @@
 """The simulated VISCA camera's settings and outputs: what a transport configures and gets back.
 
-The EVI-D100-like model constants (timing, end stops, speed table, identity), the device's
-configuration (:class:`DeviceConfig`), the bytes it emits (:class:`Emission`) and its counters
-(:class:`DeviceStats`). The device that takes and gives them is :mod:`drivers.sim.device`.
+The device's own constants (field period, byte time, default motor speeds, power-on time, ROM
+version), its configuration (:class:`DeviceConfig`), the bytes it emits (:class:`Emission`) and
+its counters (:class:`DeviceStats`). The camera's facts (end stops, counts per degree, speed
+tables, focus and zoom ranges, VersionInq identity) are its camera model's,
+:mod:`drivers.sim.models`. The device that takes and gives them is :mod:`drivers.sim.device`.
 """
 
 from __future__ import annotations
@@ -13,34 +15,17 @@ from drivers.sim.models import EVI_D100 as SIM_EVI_D100
 from drivers.sim.models import SimModel
 from drivers.visca import codec_framing
 
-# ---- model constants (EVI-D100-like, design.md §6) ---------------------------------------------
+# ---- device constants (EVI-D100-like, design.md §6) --------------------------------------------
 
 FIELD_PERIOD_S = 1.0 / 60.0  # NTSC field: the camera handles at most one message per field
 BITS_PER_BYTE = 10  # 8N1 on the wire: start bit, 8 data bits, stop bit
-COUNTS_PER_DEGREE = 14.4  # pan/tilt position counts per degree (EVI-D100)
-PAN_LIMIT_COUNTS = 0x05A0  # ±100° (0xFA60–0x05A0)
-TILT_LIMIT_COUNTS = 0x0168  # ±25° (0xFE98–0x0168)
-MAX_PAN_SPEED_CODE = 0x18
-MAX_TILT_SPEED_CODE = 0x14
-# deg/s for speed codes 01…18 (index code − 1); tilt uses the first 0x14 entries.
-SPEED_TABLE_DEG_S = (
-    2.0, 2.4, 3.0, 3.7, 4.7, 6.1, 7.4, 9.1, 11.0, 14.0, 18.0, 22.0,
-    27.0, 34.0, 42.0, 52.0, 65.0, 81.0, 100.0, 125.0, 155.0, 190.0, 240.0, 300.0,
-)  # fmt: skip
-FOCUS_RANGE = (0x1000, 0x8400)  # far end … near end, counts
-ZOOM_RANGE = (0x0000, 0x4000)  # wide … tele, counts
-# Assumed motor speeds (no datasheet figure): focus sweeps its full range in about 1.5 s, zoom
-# goes wide → tele in about 2 s, both typical of the EVI-D100 generation.
-DEFAULT_FOCUS_SPEED_COUNTS_S = (FOCUS_RANGE[1] - FOCUS_RANGE[0]) / 1.5
-DEFAULT_ZOOM_SPEED_COUNTS_S = (ZOOM_RANGE[1] - ZOOM_RANGE[0]) / 2.0
+# Assumed motor speeds (no datasheet figure): focus sweeps the EVI-D100's full range in about
+# 1.5 s, zoom goes wide → tele in about 2 s, both typical of the EVI-D100 generation. They are
+# the device's, not the camera model's: another model keeps these counts per second.
+DEFAULT_FOCUS_SPEED_COUNTS_S = (SIM_EVI_D100.focus_range[1] - SIM_EVI_D100.focus_range[0]) / 1.5
+DEFAULT_ZOOM_SPEED_COUNTS_S = (SIM_EVI_D100.zoom_range[1] - SIM_EVI_D100.zoom_range[0]) / 2.0
 DEFAULT_POWER_ON_S = 0.1  # standby → on (real cameras take seconds; short keeps tests fast)
-# VersionInq identity: Sony's vendor ID is 0x0001; model codes as controllers' tables know them
-# (0x040D EVI-D100, 0x040E EVI-D70), so a controller that picks its tables from the model gets
-# the camera we simulate.
-VENDOR_SONY = 0x0001
-MODEL_EVI_D100 = 0x040D
-MODEL_EVI_D70 = 0x040E
-DEFAULT_ROM = 0x0200
+DEFAULT_ROM = 0x0200  # VersionInq ROM version (vendor and model code are the camera model's)
 
 
 @dataclass(frozen=True, slots=True)
