@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import logging
 import os
 import subprocess
 import sys
@@ -51,7 +50,6 @@ from hil.soak import git_commit
 
 __all__ = ["BENCH_SCHEMA", "run_bench", "write_readme"]
 
-logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 BENCH_SCHEMA = 2

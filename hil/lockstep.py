@@ -28,7 +28,6 @@ The actions' executor is :mod:`hil.lockstep_executor`, the focus sweeps' own pol
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 import time
 from collections import deque
@@ -73,8 +72,6 @@ from hil.results import BurstRecord, RunResult
 from hil.scenario import Scenario, TrajectorySpec
 from hil.simbuild import T_FIRST_FRAME_S, SimSession, build_session
 from hil.track3d import Track3DScore, truth_3d
-
-logger = logging.getLogger(__name__)
 
 Policy = Literal["dffd", "sweep", "coarse_fine", "aruco"]
 # The focus-sweep baselines: the classic full sweep and Krotkov's coarse-to-fine search.
