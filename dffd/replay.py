@@ -32,7 +32,7 @@ from dffd.core.filters import KFTraceEvent
 from dffd.core.lens import Lens, LensError
 from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
 from dffd.core.smoother import Smoothed, rts_smooth
-from dffd.core.tracking3d import Track3DEstimate
+from dffd.core.tracking3d_types import Track3DEstimate
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE
 from dffd.recording import RecordingError, RecordingReader, Truth
 from dffd.step import CoreStep

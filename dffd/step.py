@@ -27,15 +27,14 @@ import numpy.typing as npt
 
 from dffd.core.pipeline import Estimate, Pipeline, PipelineConfig, PipelineOutput
 from dffd.core.track_feed import FeedFrame, SizeFeed
-from dffd.core.tracking3d import (
+from dffd.core.tracking3d import Tracker3DBank
+from dffd.core.tracking3d_camera import (
     CameraModel,
     DirectionDepth,
-    Track3DEstimate,
-    Tracker3DBank,
-    TrackerKind,
     cartesian_measurement,
     direction_rate_deg_s,
 )
+from dffd.core.tracking3d_types import Track3DEstimate, TrackerKind
 from dffd.first_depth import FirstDepthGate
 
 if TYPE_CHECKING:

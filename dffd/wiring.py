@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from dffd.config import DffdConfig
     from dffd.config.models import CaptureSection
     from dffd.core.lens import Lens
-    from dffd.core.tracking3d import TrackerKind
+    from dffd.core.tracking3d_types import TrackerKind
     from dffd.scheduler import Scheduler
     from drivers.frames import FrameSource
     from drivers.sim.config import SimCameraConfig

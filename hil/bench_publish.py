@@ -173,7 +173,7 @@ def _feed(
 def sample_outputs(index: int, t: float) -> tuple[Any, Any]:
     """A core estimate with a 3D track as the service produces them while tracking."""
     from dffd.core.pipeline import Estimate
-    from dffd.core.tracking3d import Track3DEstimate
+    from dffd.core.tracking3d_types import Track3DEstimate
 
     z = 4.0 + 0.001 * index
     est = Estimate(

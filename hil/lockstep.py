@@ -41,7 +41,7 @@ from dffd.actuation import report_done, report_failed
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
 from dffd.core.pipeline import PipelineConfig, PipelineOutput
-from dffd.core.tracking3d import TRACKER_KINDS
+from dffd.core.tracking3d_types import TRACKER_KINDS
 from dffd.core.types import FrameTag
 from dffd.daemon.searchwatch import SearchWatch
 from dffd.scheduler import (

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from dffd.core.tracking3d import Track3DEstimate
+from dffd.core.tracking3d_types import Track3DEstimate
 from hil.baselines import known_size_depth
 from hil.results import BurstRecord, RunResult
 from hil.runner import RunOptions

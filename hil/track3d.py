@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from dffd.core.tracking3d import Track3DEstimate
+from dffd.core.tracking3d_types import Track3DEstimate
 from drivers.sim.source import FrameTruth
 
 Vec3 = tuple[float, float, float]

@@ -11,6 +11,12 @@ import pytest
 
 from dffd.config import DffdConfig
 from dffd.consistency import consistency_stats, in_band
+from dffd.core.error_covariance import (
+    ErrorCovariance,
+    SharedFrameCovariance,
+    _congruence,
+    _congruence_loop,
+)
 from dffd.core.estimators import EstimatorBank
 from dffd.core.filters import CF1, CF2, DepthKF, KFNoise, LPVGains, LPVObserver, cf2_gains
 from dffd.core.noise import (
@@ -26,13 +32,7 @@ from dffd.core.noise import (
 )
 from dffd.core.outputs import Measurement
 from dffd.core.synthetic import synthetic_lens
-from dffd.core.uncertainty import (
-    ErrorCovariance,
-    SharedFrameCovariance,
-    Uncertainty,
-    _congruence,
-    _congruence_loop,
-)
+from dffd.core.uncertainty import Uncertainty
 from dffd.wiring import pipeline_config
 
 

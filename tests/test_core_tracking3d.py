@@ -24,22 +24,26 @@ from dffd.core.motion_models import (
 )
 from dffd.core.track_feed import FeedFrame, SizeFeed
 from dffd.core.tracking3d import (
-    SIZE,
-    TRACK_DIM,
-    TRACKER_KINDS,
-    CameraModel,
-    DirectionDepth,
-    DirectionSize,
-    Track3DEstimate,
     Tracker3D,
-    Tracker3DConfig,
     _unit_update,
-    cartesian_measurement,
-    direction_rate_deg_s,
     imm_mix,
     markov_matrix,
     mmae_probabilities,
+)
+from dffd.core.tracking3d_camera import (
+    CameraModel,
+    DirectionDepth,
+    DirectionSize,
+    cartesian_measurement,
+    direction_rate_deg_s,
     unit_size_point,
+)
+from dffd.core.tracking3d_types import (
+    SIZE,
+    TRACK_DIM,
+    TRACKER_KINDS,
+    Track3DEstimate,
+    Tracker3DConfig,
 )
 
 FloatArray = np.ndarray

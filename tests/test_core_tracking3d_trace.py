@@ -24,10 +24,10 @@ import numpy.typing as npt
 import pytest
 
 from dffd.core import kernel_dispatch, kernels, kernels_numpy
-from dffd.core.tracking3d import (
+from dffd.core.tracking3d import Tracker3DBank
+from dffd.core.tracking3d_types import (
     TRACKER_KINDS,
     Track3DEstimate,
-    Tracker3DBank,
     Tracker3DConfig,
     TrackerKind,
 )

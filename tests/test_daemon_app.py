@@ -190,7 +190,7 @@ def test_the_estimate_payload_carries_the_3d_track_and_fits_the_shipped_schema()
     import jsonschema
 
     from dffd.core.pipeline import Estimate as CoreEstimate
-    from dffd.core.tracking3d import Track3DEstimate
+    from dffd.core.tracking3d_types import Track3DEstimate
     from dffd.daemon.payloads import Payloads
 
     est = CoreEstimate(

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from dffd.core.tracking3d import Track3DEstimate
+from dffd.core.tracking3d_types import Track3DEstimate
 from hil.track3d import Track3DScore, Truth3D, pooled_block
 
 

@@ -23,7 +23,7 @@ from dffd.config import DffdConfig
 from dffd.core.pipeline import Measurement as CoreMeasurement
 from dffd.core.pipeline import Pipeline, PipelineOutput
 from dffd.core.synthetic import DiscScene, StreamStep, closed_loop, synthetic_lens
-from dffd.core.tracking3d import Track3DEstimate
+from dffd.core.tracking3d_types import Track3DEstimate
 from dffd.mqtt import models
 from dffd.mqtt.commands import CommandRejected
 from dffd.mqtt.publisher import Publisher

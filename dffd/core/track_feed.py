@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from dffd.core.tracking3d import CameraModel, Tracker3DConfig, unit_size_point_of
+from dffd.core.tracking3d_camera import CameraModel, unit_size_point_of
+from dffd.core.tracking3d_types import Tracker3DConfig
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -5,17 +5,11 @@ velocity, acceleration and angular speed are estimated from the single pan/tilt 
 multiple-model adaptive estimation. Pure and deterministic: no clock, no I/O; the caller hands in
 the frame time and one measurement per frame that has a contour.
 
-**Measurement.** The target's direction (image centroid through the camera model — principal
-point, pixel pitch, image distance — and the pan/tilt angles) and the fused depth ``z`` along
-the optical axis, each with its σ. It is *converted* to a Cartesian world point with the
-covariance propagated through the Jacobian of the conversion (:func:`cartesian_measurement`),
-rather than updated by an EKF on (direction, depth). Why: the angular errors are tiny (a tenth
-of a pixel is ~2·10⁻⁵ rad at f = 31 mm, p = 5 µm; the pan/tilt readback ~3.5·10⁻⁴ rad), so the
-conversion's linearisation error — of order ``z σ_θ²`` — is microns, far below the depth σ; the
-converted measurement is then exactly linear in the state (``H = [I 0 …]``), identical for every
-model, so the models' innovation likelihoods are computed on the same quantity and IMM mixing
-stays linear. The covariance is strongly elongated along the line of sight (depth σ of
-centimetres, lateral σ of millimetres) and that shape is what the filters use.
+**Measurement** (:mod:`dffd.core.tracking3d_camera`): the target's direction and fused depth
+(or apparent size), converted to a Cartesian world point with its covariance — exactly linear in
+the state (``H = [I 0 …]``) and identical for every model, so the models' innovation likelihoods
+are computed on the same quantity and IMM mixing stays linear. The configuration, the state
+layout and the output are :mod:`dffd.core.tracking3d_types`'.
 
 **Models** (:mod:`dffd.core.motion_models`): constant velocity, constant acceleration and a
 horizontal coordinated turn with the turn rate as a state (EKF), each discretised exactly for the
@@ -45,7 +39,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -68,210 +61,26 @@ from dffd.core.motion_models import (
     ACC,
     OMEGA,
     POS,
-    STATE_DIM,
     VEL,
     ConstantAcceleration,
     ConstantVelocity,
     CoordinatedTurn,
     MotionModel,
 )
+from dffd.core.tracking3d_camera import CameraModel, DirectionDepth, cartesian_measurement
+from dffd.core.tracking3d_types import (
+    SIZE,
+    TRACK_DIM,
+    Track3DEstimate,
+    Tracker3DConfig,
+    TrackerKind,
+    Vec3,
+)
 
 FloatArray = npt.NDArray[np.float64]
-Vec3 = tuple[float, float, float]
-# The tracker's state: the motion models' 10 elements, then the target's size R (m) — the
-# constant of the size invariant ``z s = R`` (docs/tracking3d.md). The models never touch it.
-SIZE = STATE_DIM
-TRACK_DIM = STATE_DIM + 1
-TrackerKind = Literal["mmae", "imm", "cv"]
-TRACKER_KINDS: tuple[TrackerKind, ...] = ("mmae", "imm", "cv")
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _POS_IDX = np.arange(3)  # the position's indices in the state (diagonal gathers)
-
-
-@dataclass(frozen=True, slots=True)
-class CameraModel:
-    """Pinhole back-projection: principal point (px), pixel pitch and image distance (mm)."""
-
-    principal_point_px: tuple[float, float]
-    pixel_pitch_mm: float
-    image_distance_mm: float  # lens-to-sensor distance (≈ f at long range), as geometry.py uses
-
-    @classmethod
-    def centred(
-        cls, image_size: tuple[int, int], pixel_pitch_mm: float, image_distance_mm: float
-    ) -> CameraModel:
-        """Principal point at the image centre, as :func:`dffd.core.geometry.camera_point`."""
-        w, h = image_size
-        return cls(((w - 1) / 2.0, (h - 1) / 2.0), pixel_pitch_mm, image_distance_mm)
-
-
-@dataclass(frozen=True, slots=True)
-class DirectionDepth:
-    """One frame's measurement: centroid, pan/tilt and depth along the optical axis, with σ."""
-
-    centroid_px: tuple[float, float]
-    pan_deg: float
-    tilt_deg: float
-    z_m: float
-    sigma_z_m: float
-    sigma_px: float = 0.3  # centroid σ per axis
-    sigma_angle_deg: float = 0.02  # pan/tilt readback σ per axis (EVI-D100: 1/14.4°/√12)
-
-
-@dataclass(frozen=True, slots=True)
-class DirectionSize:
-    """One frame's direction and apparent size: centroid, pan/tilt and ``s = r·pitch/F``.
-
-    ``s`` is the normalised image size (``= R/z`` for a target of size ``R`` at depth ``z``);
-    ``sigma_size_rel`` is its relative σ (σ_s/s).
-    """
-
-    centroid_px: tuple[float, float]
-    pan_deg: float
-    tilt_deg: float
-    size_ratio: float
-    sigma_size_rel: float
-    sigma_px: float = 0.3  # centroid σ per axis
-    sigma_angle_deg: float = 0.02  # pan/tilt σ per axis
-
-
-@dataclass(frozen=True, slots=True)
-class Tracker3DConfig:
-    """Noise densities of the bank and the combination's constants.
-
-    Values describe the paper's setting — a small indoor robot at walking pace (≤ 1 m/s) that
-    turns and stops — not a fit to any simulator run.
-    """
-
-    q_cv_m2_s3: float = 1e-4  # bank CV (quiet): velocity wanders ~1 cm/s per √s
-    q_cv_single_m2_s3: float = 1e-2  # lone CV baseline, absorbs manoeuvres: ~0.1 m/s per √s
-    # The bank's CA, CT and turn-rate densities and burst_sigma_scale were swept on the
-    # reference optics only (docs/tracking3d.md, "Noise densities"); the aberrated is held out.
-    q_ca_m2_s5: float = 5e-2  # CA white jerk: acceleration wanders ~0.22 m/s² per √s
-    # CT white acceleration (on top of the turn), as quiet as the CV: a quieter CT (swept
-    # 1e-5, 3e-5, 1e-4) wins the probability on a straight line, where ω = 0 makes it a CV.
-    q_ct_m2_s3: float = 1e-4
-    q_omega_rad2_s3: float = 1e-6  # CT turn-rate random walk: ~0.001 rad/s per √s
-    probability_floor: float = 1e-3  # MMAE: no model probability below this
-    switch_rate_hz: float = 0.2  # IMM: rate of leaving a model (mean sojourn 5 s)
-    init_sigma_v_m_s: float = 1.0  # prior on the velocity at the first measurement
-    init_sigma_a_m_s2: float = 0.5
-    init_sigma_omega_rad_s: float = 0.3
-    max_gap_s: float = 1.0  # a longer gap between measurements restarts the track
-    # Size-state measurements (step_size): random walk of the target size R. R is constant for a
-    # rigid target; the walk lets it follow what the size invariant does not model (a flat
-    # target seen at a changing angle, a residual magnification error): 10⁻⁶ m (3·10⁻⁵ of a
-    # 36 mm target) per √s (swept 0, 10⁻¹³, 10⁻¹², 10⁻¹¹ on the reference optics).
-    q_size_m2_s: float = 1e-12
-    # A track starts only on a burst size this precise (σ_R/R, after burst_sigma_scale). With a
-    # vaguer size the pseudo-measurement p − R m = 0 drags R̂ and p together towards 0 (its
-    # noise R̂² Σ_m shrinks with them): the start-up bursts spanning the working range measure R
-    # to 9-18 % and put the track metres off (stop-and-go, reference optics).
-    start_size_sigma_rel: float = 0.01
-    # Measurement noise of the size-state feed (dffd.core.track_feed). Measured on the reference
-    # optics only (hil run --optics reference, steady state, against the simulator's truth):
-    sigma_size_rel: float = 3e-4  # σ of s/s on tracking frames (R = s·z_true scatters 2·10⁻⁴)
-    sigma_px: float = 0.3  # centroid σ per axis
-    sigma_angle_deg: float = 0.03  # pan/tilt of the tag (dead-reckoned head model) per axis
-    # The pipeline's size measurements' errors are 2.0-2.5 of their σ with lag-1
-    # autocorrelation 0.3-0.5 (rolling bursts share frames), which a white-noise update
-    # over-trusts: 3.
-    burst_sigma_scale: float = 3.0
-
-    def bank(self) -> list[MotionModel]:
-        """The multiple-model bank: CV, CA, CT."""
-        return [
-            ConstantVelocity(self.q_cv_m2_s3),
-            ConstantAcceleration(self.q_ca_m2_s5),
-            CoordinatedTurn(self.q_ct_m2_s3, self.q_omega_rad2_s3),
-        ]
-
-
-# Not frozen, to be treated as read-only: a frozen dataclass sets each field through
-# object.__setattr__ (~1 µs a field on the 2-core machine), and one is built on every frame.
-@dataclass(slots=True)
-class Track3DEstimate:
-    """The tracker's output at one time (world frame, SI units)."""
-
-    t: float
-    position_m: Vec3
-    velocity_m_s: Vec3
-    acceleration_m_s2: Vec3
-    angular_speed_rad_s: float  # about the upward vertical, + = counter-clockwise from above
-    position_sigma_m: Vec3  # √diag of the combined position covariance
-    model_probabilities: dict[str, float] = field(default_factory=dict)
-
-
-def cartesian_measurement(
-    meas: DirectionDepth, camera: CameraModel
-) -> tuple[FloatArray, FloatArray]:
-    """World point of the measurement and its covariance (first-order propagation)."""
-    return _cartesian(
-        meas.centroid_px,
-        meas.pan_deg,
-        meas.tilt_deg,
-        meas.z_m,
-        meas.sigma_z_m,
-        meas.sigma_px,
-        meas.sigma_angle_deg,
-        camera,
-    )
-
-
-def unit_size_point(meas: DirectionSize, camera: CameraModel) -> tuple[FloatArray, FloatArray]:
-    """World point ``m`` of a target of unit size (``p = R m``) and its covariance.
-
-    ``m = R(pan, tilt) · (k(u − cx), k(v − cy), 1) / s`` is the Cartesian conversion at the depth
-    ``1/s`` with the relative size σ as its relative depth σ, so the covariance is
-    :func:`cartesian_measurement`'s.
-    """
-    return unit_size_point_of(
-        meas.centroid_px,
-        meas.pan_deg,
-        meas.tilt_deg,
-        meas.size_ratio,
-        meas.sigma_size_rel,
-        meas.sigma_px,
-        meas.sigma_angle_deg,
-        camera,
-    )
-
-
-def unit_size_point_of(  # noqa: PLR0917 - the fields of a DirectionSize, without building one
-    centroid_px: tuple[float, float],
-    pan_deg: float,
-    tilt_deg: float,
-    size_ratio: float,
-    sigma_size_rel: float,
-    sigma_px: float,
-    sigma_angle_deg: float,
-    camera: CameraModel,
-) -> tuple[FloatArray, FloatArray]:
-    """:func:`unit_size_point` of a :class:`DirectionSize` with these fields (a frame's call)."""
-    z = 1.0 / size_ratio
-    return _cartesian(
-        centroid_px, pan_deg, tilt_deg, z, sigma_size_rel * z, sigma_px, sigma_angle_deg, camera
-    )
-
-
-def direction_rate_deg_s(est: Track3DEstimate) -> tuple[float, float]:
-    """Pan/tilt rate (deg/s) of the direction to the estimated target, the head's frame.
-
-    The direction that centres ``p`` is ``pan = atan2(x, z)``, ``tilt = atan2(−y, h)`` with
-    ``h = √(x² + z²)`` (docs/tracking3d.md: positive pan right, positive tilt up, y down); their
-    time derivatives along the estimated velocity.
-    """
-    x, y, z = est.position_m
-    vx, vy, vz = est.velocity_m_s
-    h2 = x * x + z * z
-    if not h2 > 0.0:
-        return 0.0, 0.0
-    h = math.sqrt(h2)
-    pan_rate = (z * vx - x * vz) / h2
-    h_dot = (x * vx + z * vz) / h
-    tilt_rate = (-vy * h + y * h_dot) / (h2 + y * y)
-    return math.degrees(pan_rate), math.degrees(tilt_rate)
 
 
 def markov_matrix(n: int, rate_hz: float, dt: float) -> FloatArray:
@@ -706,28 +515,6 @@ def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
     c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
     inv = np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]) / det
     return inv, math.log(det)
-
-
-def _cartesian(  # noqa: PLR0917 - a DirectionDepth's fields
-    centroid_px: tuple[float, float],
-    pan_deg: float,
-    tilt_deg: float,
-    z: float,
-    sigma_z_m: float,
-    sigma_px: float,
-    sigma_angle_deg: float,
-    camera: CameraModel,
-) -> tuple[FloatArray, FloatArray]:
-    """:func:`cartesian_measurement` on the measurement's fields."""
-    # one kernel call (the float operations as the NumPy twin writes them out: once per
-    # tracking frame, where Python's floats and the two array builds cost ~20 µs)
-    world, cov = np.empty(3), np.empty((3, 3))
-    kernel_dispatch.current().cartesian_point(
-        centroid_px[0], centroid_px[1], pan_deg, tilt_deg, z, sigma_z_m, sigma_px,
-        sigma_angle_deg, camera.pixel_pitch_mm, camera.image_distance_mm,
-        camera.principal_point_px[0], camera.principal_point_px[1], world, cov,
-    )  # fmt: skip
-    return world, cov
 
 
 def _sym(m: FloatArray) -> FloatArray:

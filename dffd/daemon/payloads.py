@@ -19,7 +19,7 @@ from pydantic import BaseModel, ValidationError
 
 from dffd.core.pipeline import Estimate as CoreEstimate
 from dffd.core.pipeline import Measurement as CoreMeasurement
-from dffd.core.tracking3d import Track3DEstimate
+from dffd.core.tracking3d_types import Track3DEstimate
 from dffd.first_depth import (
     FIRST_DEPTH_FORCE_BURSTS,
     FIRST_DEPTH_MAX_BURSTS,
