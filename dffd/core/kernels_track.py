@@ -268,9 +268,9 @@ def track_unit_update(  # noqa: PLR0917 - numba kernels take positional argument
 
     ``H = [I₃ 0 … −m]``, noise ``R̂² Σ_m``; the innovation covariance symmetrised and inverted by
     cofactors; ``loglik[j]`` the Gaussian log-likelihood of model j's innovation; ``mu_out``
-    the models' probabilities after it (``tracking3d.mmae_probabilities`` of ``mu`` with ``floor``;
-    ``mu`` itself for a bank of one). Returns 0, or 1 when an innovation covariance is not
-    positive definite (the outputs are then undefined).
+    the models' probabilities after it (``kernels_track_numpy.mmae_probabilities`` of ``mu``
+    with ``floor``; ``mu`` itself for a bank of one). Returns 0, or 1 when an innovation
+    covariance is not positive definite (the outputs are then undefined).
     """
     pht = np.empty((_D, 3))
     gain = np.empty((_D, 3))
@@ -340,7 +340,8 @@ def track_unit_update(  # noqa: PLR0917 - numba kernels take positional argument
     if n == 1:
         mu_out[:] = mu
         return 0
-    # The MMAE probabilities (tracking3d.mmae_probabilities' float operations, in its order):
+    # The MMAE probabilities (kernels_track_numpy.mmae_probabilities' float operations, in its
+    # order):
     # Bayes' rule in log space, μ_j ∝ μ_j L_j, every μ raised to the floor.
     top = -math.inf
     for j in range(n):
@@ -555,7 +556,7 @@ def slow_error_gammas(x: FloatArray, s: FloatArray, lags: int, gamma: FloatArray
         gamma[j] = acc / n
 
 
-# -- a direction and depth as a world point (dffd.core.tracking3d.cartesian_measurement) -------
+# -- a direction and depth as a world point (dffd.core.tracking3d_camera.cartesian_measurement)
 @_jit(f"void({', '.join(['float64'] * 12)}, {_V}, {_M})")
 def cartesian_point(  # noqa: PLR0917 - the measurement's fields and the camera's
     u_px: float,

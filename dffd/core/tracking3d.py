@@ -74,7 +74,6 @@ from dffd.core.tracking3d_types import (
     Track3DEstimate,
     Tracker3DConfig,
     TrackerKind,
-    Vec3,
 )
 
 FloatArray = npt.NDArray[np.float64]
@@ -519,10 +518,6 @@ def _inv3_logdet(s: FloatArray) -> tuple[FloatArray, float]:
 
 def _sym(m: FloatArray) -> FloatArray:
     return np.asarray(0.5 * (m + m.T), dtype=np.float64)
-
-
-def _vec3(v: FloatArray) -> Vec3:
-    return float(v[0]), float(v[1]), float(v[2])
 
 
 def _model_codes(models: Sequence[MotionModel]) -> npt.NDArray[np.int64] | None:
