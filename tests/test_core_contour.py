@@ -10,7 +10,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from dffd.core import kernel_dispatch, kernels, kernels_numpy
+from dffd.core import acquisition, kernel_dispatch, kernels, kernels_numpy
 from dffd.core.acquisition import find_target
 from dffd.core.contour import (
     BoundaryObservation,
@@ -92,6 +92,60 @@ def test_the_compiled_search_mask_finds_the_polygon_opencv_finds(
     assert fast is not None
     assert slow is not None
     assert np.array_equal(fast, slow)
+
+
+def _scene(kind: str, rng: np.random.Generator) -> npt.NDArray[np.uint8]:
+    """A frame for the polarity tests: a disc of either polarity, a bright ring around a dark
+    hole, a dark disc inside a bright blob cut by the frame's edge, or random blobs."""
+    if kind == "bright disc":
+        return render_disc(W, H, (301.2, 250.7), 30.0, 1.0, rng=rng)
+    if kind == "dark disc":
+        return render_disc(W, H, (301.2, 250.7), 30.0, 1.0, foreground=40, background=200, rng=rng)
+    img = np.full((H, W), 40, np.uint8)
+    if kind == "ring":
+        cv2.circle(img, (320, 240), 60, 200, -1)
+        cv2.circle(img, (322, 238), 35, 40, -1)  # the hole: a dark blob inside the bright one
+    elif kind == "dark disc in a bright blob at the edge":
+        cv2.rectangle(img, (0, 100), (300, 400), 200, -1)
+        cv2.circle(img, (150, 250), 40, 40, -1)
+    else:  # random blobs of both shades, some cut by the edge
+        for _ in range(12):
+            centre = (int(rng.integers(0, W)), int(rng.integers(0, H)))
+            cv2.circle(img, centre, int(rng.integers(8, 60)), int(rng.choice([40, 200])), -1)
+    noisy = img + rng.normal(0.0, 2.0, img.shape)
+    return np.asarray(np.clip(noisy, 0, 255), dtype=np.uint8)
+
+
+@pytest.mark.parametrize(
+    "kind",
+    ["bright disc", "dark disc", "ring", "dark disc in a bright blob at the edge", "blobs"],
+)
+@pytest.mark.parametrize("scale", [1, 2])
+def test_the_search_skips_the_dark_pass_only_where_it_cannot_find_a_blob(
+    kind: str, scale: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With no bright pixel on the region's border every dark blob is nested inside a bright
+    one or touches the border, and the inverse mask's pass is skipped: the polygon is the one
+    both passes find, and a dark target on a bright background is still found."""
+    rng = np.random.default_rng(11)
+    scenes = [_scene(kind, rng) for _ in range(6 if kind == "blobs" else 1)]
+    skipped = 0
+    for img in scenes:
+        fast = find_target(img, None, 6.0, downscale=scale)
+        mask = acquisition._otsu_mask(img, 0, 0, W // scale, H // scale, scale)
+        passes = acquisition._polarities(mask)
+        skipped += len(passes) == 1
+        with monkeypatch.context() as patched:
+            patched.setattr(acquisition, "_polarities", lambda b: (b, cv2.bitwise_not(b)))
+            both = find_target(img, None, 6.0, downscale=scale)
+        assert (fast is None) == (both is None)
+        if fast is not None and both is not None:
+            assert np.array_equal(fast, both)
+        if kind in {"bright disc", "dark disc"}:
+            assert fast is not None
+            assert np.allclose(fast.mean(axis=0), (301.2, 250.7), atol=1.0)
+    if kind != "blobs":  # the bright disc and the ring leave the border dark: one pass
+        assert skipped == (kind in {"bright disc", "ring"})
 
 
 @pytest.mark.parametrize("bgr", [False, True])

@@ -29,8 +29,9 @@ def find_target(
 ) -> FloatArray | None:
     """The most salient closed high-contrast blob in ``roi`` (x, y, w, h) or the whole image.
 
-    Otsu threshold of the smoothed region (both polarities), external contours that do not touch
-    the region border; score = area x circularity / (1 + distance to the region centre / size).
+    Otsu threshold of the smoothed region (both polarities; the dark one only where it can find a
+    blob, see _polarities), external contours that do not touch the region border; score =
+    area x circularity / (1 + distance to the region centre / size).
     Returns the boundary polygon in image coordinates, or None.
 
     ``downscale`` > 1 searches a ``downscale``× area-averaged copy of the region (the polygon is
@@ -60,7 +61,7 @@ def find_target(
     # A chain of n pixels (steps of at most √2) encloses at most (n√2)²/(4π) = n²/(2π) px²
     # (isoperimetric): shorter chains cannot reach min_area and are skipped uncomputed.
     min_points_sq = 2.0 * math.pi * min_area
-    for mask in (binary, cv2.bitwise_not(binary)):
+    for mask in _polarities(binary):
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         for raw in contours:
             cnt = cast("npt.NDArray[np.int32]", raw)  # (n, 1, 2) int32 chains, as they come
@@ -91,6 +92,24 @@ def find_target(
     if x or y:
         poly += np.array([x, y], dtype=np.float64)
     return poly
+
+
+def _polarities(binary: npt.NDArray[np.uint8]) -> tuple[npt.NDArray[np.uint8], ...]:
+    """The masks whose external contours find_target scores: ``binary`` (bright blobs) and, when
+    a bright pixel lies on the region border, its inverse (dark blobs).
+
+    findContours pads the image with 0, so the inverse's outside is a bright (255 in ``binary``)
+    region: its external contours are the dark blobs that border the bright region joined to the
+    outside. With no bright pixel on the border that region is the padding alone, and every dark
+    blob it borders touches the border, which find_target rejects: the inverse's pass (~25 µs on
+    a 320 × 240 mask, a quarter of the search) cannot find a candidate and is skipped. The
+    result is the same as with both passes, bit for bit.
+    """
+    rh, rw = binary.shape
+    # the first and last row, then the first and last column (strided views, no copies)
+    if np.count_nonzero(binary[:: rh - 1]) or np.count_nonzero(binary[:, :: rw - 1]):
+        return binary, cast("npt.NDArray[np.uint8]", cv2.bitwise_not(binary))
+    return (binary,)
 
 
 def _otsu_mask(  # noqa: PLR0917 - the region's corner, size and scale
