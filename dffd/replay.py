@@ -30,7 +30,8 @@ from dffd.consistency import consistency_stats
 from dffd.core import kernel_dispatch
 from dffd.core.filters import KFTraceEvent
 from dffd.core.lens import Lens, LensError
-from dffd.core.pipeline import ESTIMATORS, Estimate, PipelineConfig
+from dffd.core.pipeline import ESTIMATORS, Estimate
+from dffd.core.pipeline_config import PipelineConfig
 from dffd.core.smoother import Smoothed, rts_smooth
 from dffd.core.tracking3d_types import Track3DEstimate
 from dffd.exitcodes import EXIT_FAILURE, EXIT_OK, EXIT_USAGE

@@ -25,7 +25,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from dffd.core.pipeline import Estimate, Pipeline, PipelineConfig, PipelineOutput
+from dffd.core.pipeline import Estimate, Pipeline, PipelineOutput
+from dffd.core.pipeline_config import PipelineConfig
 from dffd.core.track_feed import FeedFrame, SizeFeed
 from dffd.core.tracking3d import Tracker3DBank
 from dffd.core.tracking3d_camera import (

@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dffd.core.pipeline import PipelineConfig
+from dffd.core.pipeline_config import PipelineConfig
 from dffd.scheduler import SchedulerConfig, pixel_offset_to_deg
 from dffd.step import SERVICE_TRACKERS, CoreStep
 from drivers.visca.camera import profile_for

@@ -40,7 +40,8 @@ import numpy as np
 from dffd.actuation import report_done, report_failed
 from dffd.config import DffdConfig
 from dffd.core.lens import Lens
-from dffd.core.pipeline import PipelineConfig, PipelineOutput
+from dffd.core.pipeline import PipelineOutput
+from dffd.core.pipeline_config import PipelineConfig
 from dffd.core.tracking3d_types import TRACKER_KINDS
 from dffd.core.types import FrameTag
 from dffd.daemon.searchwatch import SearchWatch

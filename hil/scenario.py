@@ -136,8 +136,8 @@ class Scenario(_Model):
     baselines: BaselineSpec = Field(default_factory=lambda: BaselineSpec.model_validate({}))
     thresholds: ThresholdSpec = Field(default_factory=lambda: ThresholdSpec.model_validate({}))
     cases: tuple[CaseSpec, ...] = ()
-    # Overrides of dffd.scheduler.SchedulerConfig / dffd.core.pipeline.PipelineConfig fields for
-    # experiments (default: none — the bench measures the product's defaults).
+    # Overrides of dffd.scheduler.SchedulerConfig / dffd.core.pipeline_config.PipelineConfig
+    # fields for experiments (default: none — the bench measures the product's defaults).
     scheduler: dict[str, Any] = Field(default_factory=dict)
     estimator: dict[str, Any] = Field(default_factory=dict)
 

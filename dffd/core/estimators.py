@@ -22,7 +22,7 @@ from dffd.core.outputs import ESTIMATORS, EstimatorName, Measurement
 from dffd.core.uncertainty import Uncertainty
 
 if TYPE_CHECKING:
-    from dffd.core.pipeline import PipelineConfig
+    from dffd.core.pipeline_config import PipelineConfig
 
 __all__ = ["EstimatorBank"]
 

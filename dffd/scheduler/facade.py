@@ -716,7 +716,8 @@ class Scheduler:
         goes from the end straight to the new plan once the core's feedback on that frame is in.
         The first closing end after the first depth is held too (``HOLDS_AFTER_DEPTH``): a far
         target's first published depth is that burst's. The core does not take the held frames'
-        sizes for a depth jump (they are defocused: ``dffd.core.pipeline.SIZE_JUMP_MAX_BLUR_PX``).
+        sizes for a depth jump (they are defocused:
+        ``dffd.core.pipeline_config.SIZE_JUMP_MAX_BLUR_PX``).
         """
         if not burst.rolling or burst.opening or not burst.claims:
             return False
