@@ -134,15 +134,15 @@ def test_the_kernels_are_warm_only_with_a_fresh_index_of_every_kernel(tmp_path: 
     assert not kernels_warm(env)
     indexes[0].write_bytes(stale)
     assert kernels_warm(env)
-    # the 3D tracker's kernels (dffd/core/kernels_track.py) count as well
-    track_source = KERNELS_SOURCE.with_name("kernels_track.py")
-    track_digest = hashlib.sha256(track_source.read_bytes()).digest()
-    track = sorted(i for i in cache.glob("kernels_track.*.nbi") if track_digest in i.read_bytes())
-    track_index = track[0].read_bytes()
-    track[0].write_bytes(track_index.replace(track_digest, bytes(len(track_digest))))
-    assert not kernels_warm(env)
-    track[0].write_bytes(track_index)
-    assert kernels_warm(env)
+    # the samples', the statistics' and the 3D tracker's kernels (dffd/core/kernels_*.py) count
+    for name in ("kernels_sample", "kernels_stats", "kernels_track"):
+        other_digest = hashlib.sha256(KERNELS_SOURCE.with_name(f"{name}.py").read_bytes()).digest()
+        other = sorted(i for i in cache.glob(f"{name}.*.nbi") if other_digest in i.read_bytes())
+        other_index = other[0].read_bytes()
+        other[0].write_bytes(other_index.replace(other_digest, bytes(len(other_digest))))
+        assert not kernels_warm(env), name
+        other[0].write_bytes(other_index)
+        assert kernels_warm(env)
     for data in cache.glob(indexes[-1].name.removesuffix(".nbi") + ".*.nbc"):
         data.unlink()  # an index without its machine code
     assert not kernels_warm(env)

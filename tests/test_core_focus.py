@@ -250,7 +250,7 @@ def test_the_trackers_pooled_cost_equals_the_reference_pooling() -> None:
 def test_compiled_focus_cost_is_the_numpy_twins_bit_for_bit() -> None:
     # The compiled cost reproduces NumPy's pairwise sums (blocks of 8 running sums, halving
     # above 128 values): the same g and σ_g to the last bit, NaN normals and short lists too.
-    from dffd.core import kernels_track, kernels_track_numpy
+    from dffd.core import kernels_stats, kernels_stats_numpy
 
     rng = np.random.default_rng(11)
     for n in [*range(1, 40), 63, 64, 65, 127, 128, 129, 200, 257, 300, 1031]:
@@ -259,8 +259,8 @@ def test_compiled_focus_cost_is_the_numpy_twins_bit_for_bit() -> None:
             peaks[rng.random(n) < 0.1] = np.nan
             for trim in (0.0, 0.1, 0.25):
                 got, want = np.full(2, -1.0), np.full(2, -1.0)
-                ok = kernels_track.focus_cost(peaks, trim, got)
-                assert ok == kernels_track_numpy.focus_cost(peaks, trim, want)
+                ok = kernels_stats.focus_cost(peaks, trim, got)
+                assert ok == kernels_stats_numpy.focus_cost(peaks, trim, want)
                 assert got.tolist() == want.tolist()
 
 

@@ -6,15 +6,15 @@ import numba
 import pytest
 
 from dffd import warmup
-from dffd.core import kernels, kernels_acquire, kernels_track
+from dffd.core import kernels, kernels_acquire, kernels_sample, kernels_stats, kernels_track
 
 
 def _n_kernels() -> int:
-    # kernels re-exports the 3D tracker's and the acquisition's kernels; their private helpers
-    # live in their own modules
+    # kernels re-exports the samples', the statistics', the 3D tracker's and the acquisition's
+    # kernels; their private helpers (and kernels_sample.sample_u8) live in their own modules
     dispatchers = {
         id(v)
-        for module in (kernels, kernels_acquire, kernels_track)
+        for module in (kernels, kernels_acquire, kernels_sample, kernels_stats, kernels_track)
         for v in vars(module).values()
         if isinstance(v, numba.core.dispatcher.Dispatcher)
     }

@@ -40,7 +40,12 @@ __all__ = [
 KERNELS_MODULE = Path("core") / "kernels.py"
 # Every module with compiled kernels (importing dffd.core.kernels imports the 3D tracker's too);
 # all in the same directory, so in the same cache directory.
-KERNEL_MODULES = (KERNELS_MODULE, Path("core") / "kernels_track.py")
+KERNEL_MODULES = (
+    KERNELS_MODULE,
+    Path("core") / "kernels_sample.py",
+    Path("core") / "kernels_stats.py",
+    Path("core") / "kernels_track.py",
+)
 # numba's user-wide cache (appdirs' user_cache_dir for appname "numba" on Linux).
 _USER_CACHE = Path("~/.cache/numba")
 

@@ -54,7 +54,11 @@ def jit(signature: str, *, contract: bool = False) -> Callable[[_F], _F]:
     ``cache=True`` reuses the machine code across processes (tests, daemon restarts) from
     ``NUMBA_CACHE_DIR``, else ``__pycache__`` next to the kernel's file, else ``~/.cache``;
     numba raises when none is writable (a read-only install without a state directory):
-    compile in memory then — it only costs start-up time (~15-20 s of CPU).
+    compile in memory then — it only costs start-up time (~15-20 s of CPU). numba keys a cached
+    kernel on its own file's source alone, yet compiles into it the kernels it calls and the
+    constants it reads from other modules (kernels.py's fit_passes and polarity call
+    kernels_sample's; kernel_layout's constants): after changing only such a module, delete the
+    cache's ``*.nbi``/``*.nbc`` files, or its callers keep their old machine code.
     """
 
     fastmath: bool | set[str] = {"contract"} if contract else False

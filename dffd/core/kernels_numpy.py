@@ -55,10 +55,12 @@ from dffd.core.kernel_layout import (
     ST_PASSES,
     TINY,
 )
+from dffd.core.kernels_stats_numpy import (  # the measurements' statistics, dispatched too
+    focus_cost,  # the focus cost (2)
+    slow_error_gammas,  # the size invariant's autocovariances (noise.SlowErrors)
+)
 from dffd.core.kernels_track_numpy import (  # the 3D tracker's twins, dispatched with these
     cartesian_point,  # a direction and depth as a world point (tracking3d), too
-    focus_cost,  # the focus cost (2), dispatched too
-    slow_error_gammas,  # the size invariant's autocovariances (noise.SlowErrors), too
     track_combine,
     track_predict,
     track_size_update,
