@@ -96,7 +96,8 @@ def test_light_copies_of_implementation_constants_match() -> None:
 def test_a_first_start_says_the_kernels_compile(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from dffd.cli.loading import kernel_cache_dirs, kernels_cached, say_if_compiling
+    from dffd.cli.loading import kernels_cached, say_if_compiling
+    from dffd.core.kernel_cache import kernel_cache_dirs
 
     warm = _copy_of_the_warm_cache(tmp_path / "warm")
     env = {"NUMBA_CACHE_DIR": str(tmp_path)}
@@ -117,7 +118,8 @@ def test_a_first_start_says_the_kernels_compile(
 
 def test_the_kernels_are_warm_only_with_a_fresh_index_of_every_kernel(tmp_path: Path) -> None:
     """What decides whether ``dffd run`` spawns the warm-up process (dffd.warmup)."""
-    from dffd.cli.loading import kernel_cache_dir, kernels_warm
+    from dffd.cli.loading import kernels_warm
+    from dffd.core.kernel_cache import STAMP_FILE, kernel_cache_dir
 
     importlib.import_module("dffd.core.kernels")  # loads (or compiles and caches) them
     assert kernels_warm()
@@ -134,8 +136,14 @@ def test_the_kernels_are_warm_only_with_a_fresh_index_of_every_kernel(tmp_path: 
     assert not kernels_warm(env)
     indexes[0].write_bytes(stale)
     assert kernels_warm(env)
-    # the samples', the statistics' and the 3D tracker's kernels (dffd/core/kernels_*.py) count
-    for name in ("kernels_sample", "kernels_stats", "kernels_track"):
+    # every compiled module's kernels count (dffd/core/kernels_*.py)
+    for name in (
+        "kernels_sample",
+        "kernels_acquire",
+        "kernels_edges",
+        "kernels_stats",
+        "kernels_track",
+    ):
         other_digest = hashlib.sha256(KERNELS_SOURCE.with_name(f"{name}.py").read_bytes()).digest()
         other = sorted(i for i in cache.glob(f"{name}.*.nbi") if other_digest in i.read_bytes())
         other_index = other[0].read_bytes()
@@ -143,6 +151,13 @@ def test_the_kernels_are_warm_only_with_a_fresh_index_of_every_kernel(tmp_path: 
         assert not kernels_warm(env), name
         other[0].write_bytes(other_index)
         assert kernels_warm(env)
+    # a cache stamped with other kernel sources (a callee's or a constant's module changed):
+    # importing the kernels deletes it, so it is not warm
+    stamp = (cache / STAMP_FILE).read_bytes()
+    (cache / STAMP_FILE).write_text("0" * 64 + "\n")
+    assert not kernels_warm(env)
+    (cache / STAMP_FILE).write_bytes(stamp)
+    assert kernels_warm(env)
     for data in cache.glob(indexes[-1].name.removesuffix(".nbi") + ".*.nbc"):
         data.unlink()  # an index without its machine code
     assert not kernels_warm(env)
@@ -151,7 +166,7 @@ def test_the_kernels_are_warm_only_with_a_fresh_index_of_every_kernel(tmp_path: 
 def _copy_of_the_warm_cache(root: Path) -> Path:
     """A NUMBA_CACHE_DIR holding a copy of the kernels' warm cache (call it before changing
     NUMBA_CACHE_DIR: numba reads it once)."""
-    from dffd.cli.loading import kernel_cache_dir, kernel_cache_dirs
+    from dffd.core.kernel_cache import kernel_cache_dir, kernel_cache_dirs
 
     importlib.import_module("dffd.core.kernels")  # loads (or compiles and caches) them
     (target,) = kernel_cache_dirs({"NUMBA_CACHE_DIR": str(root)})

@@ -13,6 +13,8 @@ from typing import Any, TypeVar, cast
 
 import numba
 
+from dffd.core.kernel_cache import kernel_cache_dir, refresh_cache
+
 __all__ = ["CacheReport", "cache_report", "jit"]
 
 _F = TypeVar("_F", bound=Callable[..., Any])
@@ -56,9 +58,8 @@ def jit(signature: str, *, contract: bool = False) -> Callable[[_F], _F]:
     numba raises when none is writable (a read-only install without a state directory):
     compile in memory then — it only costs start-up time (~15-20 s of CPU). numba keys a cached
     kernel on its own file's source alone, yet compiles into it the kernels it calls and the
-    constants it reads from other modules (kernels.py's fit_passes and polarity call
-    kernels_sample's; kernel_layout's constants): after changing only such a module, delete the
-    cache's ``*.nbi``/``*.nbc`` files, or its callers keep their old machine code.
+    constants it reads from other modules: this module's import deletes a cache made of other
+    sources first (:mod:`dffd.core.kernel_cache`).
     """
 
     fastmath: bool | set[str] = {"contract"} if contract else False
@@ -86,3 +87,15 @@ def jit(signature: str, *, contract: bool = False) -> Callable[[_F], _F]:
 
 _KERNELS: list[Any] = []  # every compiled dispatcher, for cache_report()
 _UNCACHED: list[str] = []  # kernels compiled without a cache
+# Before any kernel of this process is loaded: a cache compiled from other sources (an upgrade
+# that changed only a callee or a constant's module) would be loaded as it is by numba.
+# numba's own reading of NUMBA_CACHE_DIR (at its import) decides the directory.
+_NUMBA_CACHE_DIR: str = getattr(numba.config, "CACHE_DIR", "")
+_STALE_DELETED = refresh_cache(
+    kernel_cache_dir({"NUMBA_CACHE_DIR": _NUMBA_CACHE_DIR} if _NUMBA_CACHE_DIR else {})
+)
+if _STALE_DELETED:
+    logger.info(
+        "deleted %d cached kernel files compiled from other sources: the kernels compile once",
+        _STALE_DELETED,
+    )
