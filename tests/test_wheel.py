@@ -46,8 +46,9 @@ COMMAND_TIMEOUT_S = 90.0
 # Per test: the module fixture's build and install count toward the first test that uses it.
 TEST_TIMEOUT_S = 400
 MIN_ESTIMATES = 10  # ~4 estimates/s once tracking; the first arrive within ~2 s of start
+# The tools' caches by name (a "*cache*" pattern also dropped dffd/core/kernel_cache.py).
 _SKIP_COPY = shutil.ignore_patterns(
-    ".git", ".venv", "*cache*", "__pycache__", "*.egg-info", "build", "dist", "out", "runs"
+    ".git", ".venv", ".*_cache", "__pycache__", "*.egg-info", "build", "dist", "out", "runs"
 )
 
 

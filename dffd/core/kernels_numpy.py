@@ -4,7 +4,7 @@ Same names, signatures, arrays and results (to rounding: the tests compare both 
 inputs) as :mod:`dffd.core.kernels`, written with vectorised NumPy instead of loops: importing
 this module compiles nothing (the bilinear samples are OpenCV's remap, which the compiled
 kernel reproduces). They cost a few hundred µs a pass more than the compiled kernels
-(NumPy's per-call overhead on 64-element arrays; docs/performance.md has the figures), which is
+(NumPy's per-call overhead on 64-element arrays; docs/design.md §10 has the figures), which is
 why they only bridge the start: :mod:`dffd.core.kernel_dispatch` swaps the compiled kernels in
 as soon as they are ready.
 """

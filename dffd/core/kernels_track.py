@@ -4,8 +4,9 @@ The multiple-model bank (:mod:`dffd.core.tracking3d`) works on three 11-element 
 11×11 covariances, where NumPy's per-call overhead (~1-5 µs a call, ~60 calls a tracking frame)
 was the whole cost (~0.2 ms a frame). These kernels do the same arithmetic in one call each,
 written out as loops: the sums run in another order than NumPy's BLAS products, so results
-agree with the NumPy twins (:mod:`dffd.core.kernels_numpy`) to rounding (the tests assert 1e-9,
-as the recorded run of tests/test_core_tracking3d_trace.py does).
+agree with the NumPy twins (:mod:`dffd.core.kernels_track_numpy`, dispatched through
+:mod:`dffd.core.kernels_numpy`) to rounding (the tests assert 1e-9, as the recorded run of
+tests/test_core_tracking3d_trace.py does).
 
 The models are the bank's own (:mod:`dffd.core.motion_models`), by code
 (:data:`dffd.core.kernel_layout.MODEL_CV` …): constant velocity and acceleration (the transition
