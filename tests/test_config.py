@@ -212,6 +212,8 @@ def test_bad_environment_value_names_the_variable(monkeypatch: pytest.MonkeyPatc
         ("[camera]\naddress = 0\n", "camera.address: 0 is out of range; allowed: 1 ≤ address ≤ 7"),
         ('[camera]\nname = "a/b"\n', "camera.name: 'a/b' is not a usable camera name"),
         ('[camera]\ndriver = "visca"\n', "camera.port: required when camera.driver is 'visca'"),
+        ('[camera]\nport = "htp://cam"\n',
+         "camera.port: 'htp://cam' is not a camera port: unknown scheme 'htp'"),
         ('[capture]\nwidth = "wide"\n', "capture.width: 'wide' is not an integer; allowed: 16"),
         ("[capture]\nfps = 0\n", "capture.fps: 0 is out of range; allowed: 0 < fps ≤ 240"),
         ("[capture]\nfps = nan\n", "capture.fps: nan is not a finite number"),
@@ -360,6 +362,69 @@ def test_check_config_finds_what_stops_run_with_the_same_code(
     assert expected in capsys.readouterr().err
     assert cli.main(["run", "--config", str(path), "--no-console"]) == 2  # refused alike
     assert expected in capsys.readouterr().err
+
+
+# Camera ports of a new user's trial: each passed check-config, then `dffd run` died with a
+# traceback (exit 1) or, for the last, looked for a serial adapter.
+@pytest.mark.parametrize(
+    ("port", "problem"),
+    [
+        ("tcp://127.0.0.1:notaport", "the port must be a number 1–65535"),
+        ("visca-ip://", "it names no host"),
+        ("serial:///dev/null?baud=abc", "baud must be a positive integer"),
+        ("htp://127.0.0.1:5678", "unknown scheme 'htp' (did you mean 'tcp://127.0.0.1:5678'?)"),
+        (
+            "visca-ip//192.168.0.100",
+            "it has no '://' after the scheme (did you mean 'visca-ip://192.168.0.100'?)",
+        ),
+    ],
+)
+def test_a_malformed_camera_port_is_refused_by_check_config_and_run_alike(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], port: str, problem: str
+) -> None:
+    video = tmp_path / "video9"
+    video.touch()
+    path = write(tmp_path, VISCA_V4L2.replace("PORTURL", port).replace("VIDEO", str(video)))
+    expected = f"camera.port: {port!r} is not a camera port: {problem}"
+    forms = "use a serial device (/dev/ttyUSB0, serial:///dev/visca0?baud=9600), visca-ip://"
+    for argv in (["check-config", str(path)], ["run", "--config", str(path), "--no-console"]):
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert expected in err, argv
+        assert forms in err, argv  # and the forms that work
+        assert "does not exist" not in err  # not taken for a missing serial adapter
+
+
+@pytest.mark.parametrize(
+    ("port", "device"),
+    [
+        ("DIR/ttyUSB9", "DIR/ttyUSB9"),
+        ("serial://DIR/visca9?baud=38400", "DIR/visca9"),
+        ("visca-ip://192.168.0.100", None),
+        ("tcp://192.168.0.100:5678", None),
+        ("socket://192.168.0.100:4001", None),
+        ("rfc2217://192.168.0.100:2217", None),
+        ("loop://", None),
+    ],
+)
+def test_every_documented_camera_port_loads_and_only_serial_devices_are_looked_for(
+    tmp_path: Path, port: str, device: str | None
+) -> None:
+    port = port.replace("DIR", str(tmp_path))  # an absolute path: serial:// gets three slashes
+    text = VISCA_V4L2.replace("PORTURL", port).replace("VIDEO", "/dev/null")
+    config = load_config(write(tmp_path, text))
+    assert config.camera.port == port
+    missing = config_problems(config, devices=True)
+    if device is None:
+        assert missing == []
+    else:
+        assert missing == [
+            (
+                f"camera.port: {device.replace('DIR', str(tmp_path))} does not exist; plug in "
+                "the adapter or fix the path (`dffd devices` lists serial adapters and prints a "
+                "udev rule)"
+            )
+        ]
 
 
 # A fresh interpreter's imports of the config (pydantic) take well under this; the daemon's take

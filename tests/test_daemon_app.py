@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ from dffd.daemon.estimator import EstimatorResult, EstimatorThread
 from dffd.daemon.status import RateMeter
 from dffd.step import CoreStep
 from drivers.frames import Frame
+from tests.conftest import free_port
 
 # The estimator thread hands results over within milliseconds; 5 s only bounds a broken test.
 RESULT_TIMEOUT_S = 5.0
@@ -294,3 +296,34 @@ async def test_scheduler_loop_yields_to_the_event_loop_when_a_wakeup_is_overdue(
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
+
+
+async def test_a_camera_port_the_link_cannot_parse_is_a_clean_failure(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The config's validation refuses such a port (tests/test_config.py); a port that got past
+    it all the same ends the run with the daemon's own error, not a traceback."""
+    import cv2
+
+    from dffd.config import load_config
+    from dffd.daemon.app import Daemon
+    from dffd.exitcodes import EXIT_FAILURE
+
+    clip = tmp_path / "clip.avi"  # a real frame source, opened before the link
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter.fourcc(*"MJPG"), 30.0, (160, 120))
+    for _ in range(3):
+        writer.write(np.full((120, 160, 3), 40, np.uint8))
+    writer.release()
+    path = tmp_path / "dffd.toml"
+    path.write_text(
+        '[camera]\ndriver = "visca"\nport = "/dev/ttyUSB0"\n'
+        f'[capture]\nsource = "stream"\nurl = "{clip}"\n'
+        f'[mqtt]\nembedded_port = {free_port()}\n[log]\ndir = "{tmp_path / "log"}"\n',
+        encoding="utf-8",
+    )
+    config = load_config(path)
+    config.camera.port = "visca-ip://"  # past the validation (assignment does not validate)
+    daemon = Daemon(config, live_console=False)
+    assert await daemon.main() == EXIT_FAILURE
+    expected = "camera.port: 'visca-ip://' is not a camera port: it names no host"
+    assert any(expected in r.getMessage() and r.levelname == "ERROR" for r in caplog.records)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import random
+import re
 import sys
 from collections.abc import AsyncIterator
 from typing import Any, cast
@@ -19,7 +20,7 @@ from drivers.visca.camera import Camera
 from drivers.visca.errors import LinkDownError
 from drivers.visca.link import ViscaLink
 from drivers.visca.transport import UdpTransport
-from drivers.visca.url import CameraUrl, parse_camera_url
+from drivers.visca.url import FORMS, CameraUrl, parse_camera_url
 from tests.visca_support import FAST, WAIT_S, reinit_event
 
 # Start-up of `dffd sim-camera` as a subprocess (interpreter + imports) on a loaded machine.
@@ -37,6 +38,11 @@ CLI_START_TIMEOUT_S = 20.0
         ("visca-ip://cam.local", CameraUrl("visca-ip", "cam.local", 52381)),
         ("tcp://192.168.0.100:5678", CameraUrl("tcp", "192.168.0.100", 5678)),
         ("TCP://cam", CameraUrl("tcp", "cam", 5678)),
+        ("tcp://[::1]:5678", CameraUrl("tcp", "::1", 5678)),
+        # pyserial's own URL handlers go to pyserial whole
+        ("socket://cam:4001", CameraUrl("serial", "socket://cam:4001")),
+        ("rfc2217://cam:2217", CameraUrl("serial", "rfc2217://cam:2217")),
+        ("spy:///dev/ttyUSB0", CameraUrl("serial", "spy:///dev/ttyUSB0")),
     ],
 )
 def test_camera_urls_parse(url: str, expected: CameraUrl) -> None:
@@ -49,14 +55,33 @@ def test_camera_urls_parse(url: str, expected: CameraUrl) -> None:
         ("", "empty"),
         ("serial://", "names no device"),
         ("serial:///dev/x?baud=fast", "baud"),
+        ("serial:///dev/null?baud=abc", "baud must be a positive integer"),
         ("tcp://:5678", "names no host"),
+        ("visca-ip://", "names no host"),
         ("tcp://cam:99999", "1–65535"),
+        ("tcp://127.0.0.1:notaport", "1–65535"),
         ("visca-ip://cam:0", "1–65535"),
+        # Each of these went to pyserial, which failed only when the link opened.
+        ("htp://cam", "unknown scheme 'htp' (did you mean 'tcp://cam'?)"),
+        ("http://cam/video.mjpg", "unknown scheme 'http'; use"),
+        ("udp://cam:52381", "unknown scheme 'udp' (did you mean 'visca-ip://cam:52381'?)"),
+        ("visca_ip://cam", "did you mean 'visca-ip://cam'?"),
+        ("visca-ip//192.168.0.100", "no '://' after the scheme (did you mean 'visca-ip://192.1"),
+        ("tcp:cam:5678", "did you mean 'tcp://cam:5678'?"),
+        ("serial:/dev/ttyUSB0", "did you mean 'serial:///dev/ttyUSB0'?"),
+        ("192.168.0.100", "needs a scheme (did you mean 'visca-ip://192.168.0.100' or 'tcp://"),
+        ("cam.local:5678", "did you mean 'visca-ip://cam.local:5678' or 'tcp://cam.local:5678'?"),
+        ("ttyUSB0", "a serial device is an absolute path"),
+        # "dev" would parse as a host and /ttyUSB0 be opened
+        ("serial://dev/ttyUSB0", "takes an absolute path (did you mean 'serial:///dev/ttyUSB0'?)"),
     ],
 )
 def test_bad_camera_urls_say_what_is_wrong(url: str, message: str) -> None:
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(ValueError, match=re.escape(message)) as info:
         parse_camera_url(url)
+    text = str(info.value)
+    assert text.startswith(f"{url!r} is not a camera port: ")
+    assert text.endswith(f"; use {FORMS}")  # and what a camera port looks like
 
 
 @contextlib.asynccontextmanager

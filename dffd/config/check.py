@@ -18,11 +18,10 @@ from dffd.config.explain import ConfigError
 from dffd.config.loading import load_config
 from dffd.config.models import DffdConfig
 from dffd.exitcodes import EXIT_OK, EXIT_USAGE
+from drivers.visca.url import parse_camera_url
 
 __all__ = ["check_run_config", "missing_devices", "problems", "run"]
 
-# camera.port URL forms that name a local serial device (others are network transports).
-_SERIAL_SCHEME = "serial://"
 # A V4L2 device given by index N is /dev/videoN.
 _VIDEO_DEVICE = "/dev/video{}"
 
@@ -117,9 +116,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _serial_path(port: str) -> Path | None:
-    """The local device of a bare path or ``serial://PATH?…`` port; None for network ports."""
-    if port.startswith(_SERIAL_SCHEME):
-        return Path(port.removeprefix(_SERIAL_SCHEME).partition("?")[0])
-    if "://" in port:
+    """The local device of a bare path or ``serial://PATH?…`` port; None for network ports and
+    pyserial's URL handlers (``socket://…``)."""
+    parsed = parse_camera_url(port)  # as the driver reads it; valid, the config checked it
+    if parsed.transport != "serial" or "://" in parsed.target:
         return None
-    return Path(port)
+    return Path(parsed.target)

@@ -29,6 +29,7 @@ from dffd.literals import BestEstimator, BurstMode, BurstPolicy, FocusMeasure, P
 from dffd.resources import DEFAULT_LENS, ResourceNotFoundError, is_lens_name, lens_table
 from dffd.web.listen import WebConfigError, is_loopback, parse_listen
 from drivers.sim.resources import world_file, world_names
+from drivers.visca.url import parse_camera_url
 
 __all__ = [
     "DEFAULT_MQTTS_PORT",
@@ -105,6 +106,17 @@ class CameraSection(_Section):
                 f"{value!r} is not a usable camera name; use 1–64 letters, digits, '_', '-' or '.'"
                 " (it becomes an MQTT topic level)"
             )
+        return value
+
+    @field_validator("port")
+    @classmethod
+    def _port_is_a_camera_url(cls, value: str | None) -> str | None:
+        """The driver's own parser: a port check-config passes is one the link can open."""
+        if value:  # unset or empty: _visca_needs_port says whether one is required
+            try:
+                parse_camera_url(value)
+            except ValueError as exc:
+                raise _value_error(str(exc)) from None
         return value
 
     @model_validator(mode="after")

@@ -338,7 +338,11 @@ class Daemon:
         cfg = self.config
         assert self.publisher is not None
         publisher = self.publisher
-        link = ViscaLink(port, cfg.camera.baudrate, timeouts=link_timeouts(cfg))
+        try:
+            link = ViscaLink(port, cfg.camera.baudrate, timeouts=link_timeouts(cfg))
+        except ValueError as exc:  # a bad URL; the config's validation parses camera.port first
+            where = "camera.port" if cfg.camera.driver == "visca" else "simulated camera's port"
+            raise DaemonError(f"{where}: {exc}") from exc
         self._parts.link = link
         async with asyncio.TaskGroup() as group:
             pub_task = group.create_task(publisher.run(), name="mqtt")
