@@ -12,6 +12,7 @@ __all__ = ["EXIT_CODES_HELP", "EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_OK", "EX
 
 EXIT_OK: Final = 0
 # A runtime failure: the camera, broker or recording could not be used; the message says why.
+# Also stdout's reader gone (`| head`): quietly, as Python exits on EPIPE (dffd.cli.entry_point).
 EXIT_FAILURE: Final = 1
 # Usage or configuration error: bad arguments, an invalid config, or a file or device the config
 # names that does not exist (what `dffd check-config --check-files` reports, with this code).

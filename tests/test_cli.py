@@ -6,6 +6,7 @@ import hashlib
 import importlib
 import json
 import logging
+import os
 import shutil
 import subprocess
 import sys
@@ -16,6 +17,7 @@ import pytest
 from dffd import exitcodes
 from dffd.cli import SUBCOMMANDS, build_parser, service_log_level, verbosity_level
 from dffd.cli.arguments import REPLAY_ESTIMATORS
+from dffd.resources import default_config_file
 
 KERNELS_SOURCE = Path(__file__).resolve().parent.parent / "dffd/core/kernels.py"
 # A fresh interpreter running `dffd X --help` (imports only): well under this on a loaded machine.
@@ -69,6 +71,32 @@ def test_the_command_lines_verbosity_wins_over_the_configured_level_when_it_asks
     # -v: INFO over a quieter level, and never quieter than the configured one
     assert service_log_level("WARNING", 1) == logging.INFO
     assert service_log_level("DEBUG", 1) == logging.DEBUG
+
+
+# A fresh interpreter running `dffd check-config` (pydantic, no kernels): well under this.
+CHECK_CONFIG_TIMEOUT_S = 60.0
+
+
+@pytest.mark.parametrize("unbuffered", [True, False])
+def test_a_reader_that_closed_the_pipe_early_gets_no_traceback(unbuffered: bool) -> None:
+    """`dffd check-config --json | head -1`: once head has exited, dffd's output has nowhere to
+    go. A real pipe whose reader is gone before dffd writes: exit 1 (as Python exits on EPIPE),
+    nothing on stderr. Unbuffered (PYTHONUNBUFFERED=1), the subcommand's print fails (it was a
+    traceback); buffered, the flush at the end (it was Python's "Exception ignored", exit 120)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if unbuffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        done = subprocess.run(
+            [sys.executable, "-m", "dffd", "check-config", "--json", str(default_config_file())],
+            stdout=write_end, stderr=subprocess.PIPE, text=True, env=env,
+            timeout=CHECK_CONFIG_TIMEOUT_S, check=False,
+        )  # fmt: skip
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr) == (exitcodes.EXIT_FAILURE, "")
 
 
 def test_driver_tools_use_the_same_exit_codes() -> None:

@@ -11,13 +11,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import cast
 
 from dffd import __version__
-from dffd.exitcodes import EXIT_CODES_HELP, EXIT_INTERRUPTED, EXIT_USAGE
+from dffd.exitcodes import EXIT_CODES_HELP, EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_USAGE
 
 __all__ = [
     "SUBCOMMANDS",
@@ -151,8 +152,20 @@ def service_log_level(configured: str, verbose: int) -> int:
 
 
 def entry_point() -> None:
-    """Console-script entry point."""
-    sys.exit(main())
+    """Console-script entry point; exit 1 quietly when stdout's reader has gone (``| head``)."""
+    try:
+        try:
+            code: str | int | None = main()
+        except SystemExit as exc:  # argparse: --help, --version, a usage error
+            code = exc.code
+        sys.stdout.flush()  # here, not at the interpreter's exit, where it could not be caught
+    except BrokenPipeError:
+        # As the Python docs advise (signal module, "Note on SIGPIPE"): point stdout at devnull,
+        # so that the flush at exit does not raise again, and exit 1 as Python does on EPIPE.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        sys.exit(EXIT_FAILURE)
+    sys.exit(code)
 
 
 def _resolve(target: str) -> Callable[..., object]:
