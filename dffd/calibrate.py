@@ -49,12 +49,13 @@ import sys
 from collections.abc import Coroutine
 from typing import Any
 
-from dffd.calibrate_lensfile import lens_toml, output_problem, write_lens_file
+from dffd.calibrate_lensfile import lens_toml, write_lens_file
 from dffd.calibrate_operator import InputEndedError, stopped_message, terminal_problem
 from dffd.calibrate_procedure import CalibrationResult, Rig, calibrate_table
 from dffd.calibrate_rigs import LabRig, SimRig
 from dffd.calibrate_types import CalibrationError, DepthPoint
 from dffd.cli.loading import say_if_compiling
+from dffd.cli.output_path import output_problem
 from dffd.config import ConfigError, DffdConfig, load_config, missing_devices
 from dffd.core import kernel_dispatch
 from dffd.exitcodes import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
@@ -97,10 +98,13 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     # Everything that can be checked is, before the procedure (minutes; ~1 a depth in the lab)
     # and before the kernels load (a first start compiles them: 20-40 s).
-    unwritable = output_problem(args.out) if args.out is not None else None
-    if unwritable is not None:
-        print(f"dffd calibrate: {unwritable}", file=sys.stderr)
-        return EXIT_USAGE
+    if args.out is not None:
+        unwritable = output_problem(
+            args.out, option="--out", command="calibrate", what="lens file", example="lens.toml"
+        )
+        if unwritable is not None:
+            print(f"dffd calibrate: {unwritable}", file=sys.stderr)
+            return EXIT_USAGE
     swept: list[DepthPoint] = []  # each sweep's point as it ends: what a stop had measured
     if args.sim:
         sim_rig = SimRig(args.sim_config or reference_camera_file())

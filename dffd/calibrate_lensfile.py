@@ -1,9 +1,10 @@
-"""The lens file ``dffd calibrate`` writes: its text, whether ``--out`` can take it, the write.
+"""The lens file ``dffd calibrate`` writes: its text and the write.
 
 :func:`lens_toml` is the lens TOML format (as ``dffd/defaults/lenses/*.toml``, read by
-:class:`dffd.core.lens.Lens`) with the fit's lines as comments; :func:`output_problem` is checked
-before the procedure (minutes; ~1 a depth in the lab); :func:`write_lens_file` replaces the file
-whole or not at all.
+:class:`dffd.core.lens.Lens`) with the fit's lines as comments; :func:`write_lens_file` replaces
+the file whole or not at all. Whether ``--out`` can take it is checked before the procedure
+(minutes; ~1 a depth in the lab) by :func:`dffd.cli.output_path.output_problem`, which ``dffd
+replay`` asks too.
 
 Split from :mod:`dffd.calibrate` (the command).
 """
@@ -13,7 +14,6 @@ from __future__ import annotations
 import contextlib
 import os
 import stat
-import tempfile
 from pathlib import Path
 
 from dffd.core.lens import Lens, VertexResponse
@@ -49,33 +49,6 @@ def lens_toml(
         f"focus_table = [\n{rows}\n]\n"
         f"{response}"
     )
-
-
-def output_problem(path: Path) -> str | None:
-    """Why the lens table could not be written to ``path`` (``--out``), or None: checked before
-    the procedure, which takes minutes."""
-    target = path.resolve()  # a symlink's table is written where it points
-    directory = target.parent
-    if target.is_dir():
-        return (
-            f"--out {path} is a directory: give the lens file's path, e.g. "
-            f"--out {path / 'lens.toml'}"
-        )
-    if not directory.is_dir():
-        what = "is not a directory" if directory.exists() else "does not exist"
-        return (
-            f"--out {path}: {directory} {what} (calibrate does not create it): create the "
-            f"directory first (mkdir -p {directory}) or give another --out"
-        )
-    try:
-        with tempfile.TemporaryFile(dir=directory):
-            pass
-    except OSError as exc:
-        return (
-            f"--out {path}: cannot write in {directory} ({exc.strerror or exc}): run as a user "
-            "who may write there, or give another --out"
-        )
-    return None
 
 
 def write_lens_file(path: Path, text: str) -> None:
@@ -122,4 +95,4 @@ def _response_toml(response: VertexResponse) -> str:
     )
 
 
-__all__ = ["lens_toml", "output_problem", "write_lens_file"]
+__all__ = ["lens_toml", "write_lens_file"]

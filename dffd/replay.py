@@ -25,6 +25,7 @@ import numpy as np
 import orjson
 
 from dffd.cli.loading import say_if_compiling
+from dffd.cli.output_path import output_problem
 from dffd.config import ConfigError, load_config
 from dffd.consistency import consistency_stats
 from dffd.core import kernel_dispatch
@@ -46,7 +47,8 @@ SMOOTHED = "smoothed"  # the offline RTS smoother's estimator name (replay only)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Replay; exit 0 ok, 1 unreadable recording or output, 2 bad arguments."""
+    """Replay; exit 0 ok, 1 unreadable recording or an output that failed to be written, 2 bad
+    arguments (an output's directory missing or not writable: checked first, as calibrate's)."""
     try:
         roi = _parse_roi(args.roi) if args.roi else None
     except ValueError as exc:
@@ -57,6 +59,10 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if args.known_size is not None and args.known_size <= 0:
         print("dffd replay: --known-size must be > 0", file=sys.stderr)
+        return EXIT_USAGE
+    unwritable = _output_problems(args)  # before the recording is read and the kernels load
+    if unwritable:
+        print("\n".join(f"dffd replay: {problem}" for problem in unwritable), file=sys.stderr)
         return EXIT_USAGE
     try:
         settings = load_config(args.config)
@@ -80,9 +86,13 @@ def run(args: argparse.Namespace) -> int:
     settle = config.settle_s if args.settle is None else args.settle
     try:
         result = replay(reader, lens, config, roi=roi if roi is not None else settings.target.roi)
-        _write_jsonl(args.out, result.lines)
     except (RecordingError, OSError) as exc:
         print(f"dffd replay: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    try:
+        _write_jsonl(args.out, result.lines)
+    except OSError as exc:  # checked at the start; gone since (a removed or unmounted directory)
+        print(f"dffd replay: cannot write --out {args.out}: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     t0 = reader.records[0].t_s if reader.records else 0.0
     print(
@@ -109,13 +119,13 @@ def run(args: argparse.Namespace) -> int:
             try:
                 args.summary.write_text(json.dumps(summary, indent=2) + "\n", "utf-8")
             except OSError as exc:
-                print(f"dffd replay: cannot write {args.summary}: {exc}", file=sys.stderr)
+                print(f"dffd replay: cannot write --summary {args.summary}: {exc}", file=sys.stderr)
                 return EXIT_FAILURE
     if args.plot is not None:
         try:
             plot(result.lines, reader.truth, args.plot)
         except OSError as exc:
-            print(f"dffd replay: cannot write {args.plot}: {exc}", file=sys.stderr)
+            print(f"dffd replay: cannot write --plot {args.plot}: {exc}", file=sys.stderr)
             return EXIT_FAILURE
     return EXIT_OK
 
@@ -404,6 +414,21 @@ def _write_jsonl(path: Path, lines: Sequence[dict[str, Any]]) -> None:
     option = orjson.OPT_APPEND_NEWLINE | orjson.OPT_SERIALIZE_NUMPY
     with path.open("wb") as fh:
         fh.writelines(orjson.dumps(line, option=option) for line in lines)
+
+
+def _output_problems(args: argparse.Namespace) -> list[str]:
+    """Why each file replay was asked to write could not be written, as calibrate's --out."""
+    outputs = (
+        ("--out", args.out, "estimates file", "est.jsonl"),
+        ("--summary", args.summary, "summary", "summary.json"),
+        ("--plot", args.plot, "plot", "plot.png"),
+    )
+    found = (
+        output_problem(path, option=option, command="replay", what=what, example=example)
+        for option, path, what, example in outputs
+        if path is not None
+    )
+    return [problem for problem in found if problem is not None]
 
 
 def _parse_roi(text: str) -> tuple[int, int, int, int]:

@@ -15,7 +15,7 @@ from dffd.cli import main
 from dffd.config import DffdConfig
 from dffd.core.pipeline import Pipeline
 from dffd.core.synthetic import DiscScene, closed_loop, synthetic_lens
-from dffd.exitcodes import EXIT_FAILURE
+from dffd.exitcodes import EXIT_FAILURE, EXIT_USAGE
 from dffd.recording import RecordingWriter
 from dffd.wiring import pipeline_config
 
@@ -127,6 +127,37 @@ def test_replay_errors_and_exit_codes(
     with pytest.raises(SystemExit) as exc:
         main(["replay", str(run_dir)])  # --out missing: argparse usage error
     assert exc.value.code == 2
+
+
+@pytest.mark.parametrize("option", ["--out", "--summary", "--plot"])
+def test_an_output_that_cannot_be_written_is_refused_before_the_replay_as_calibrate_does(
+    run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str
+) -> None:
+    """A missing directory was a bare "[Errno 2] No such file or directory" after the whole
+    replay, exit 1; now it is calibrate's message, before anything runs, exit 2."""
+    missing, a_file = tmp_path / "missing", tmp_path / "a-file"
+    a_file.write_text("", encoding="utf-8")
+    cases = {
+        missing / "x": (
+            f"{missing} does not exist (replay does not create it): create the directory first "
+            f"(mkdir -p {missing}) or give another {option}"
+        ),
+        a_file / "x": f"{a_file} is not a directory",
+        tmp_path: f"{option} {tmp_path} is a directory: give the ",
+    }
+    good = {
+        "--out": tmp_path / "e.jsonl",
+        "--summary": tmp_path / "s.json",
+        "--plot": tmp_path / "p.png",
+    }
+    for bad, expected in cases.items():
+        argv = [arg for name, path in (good | {option: bad}).items() for arg in (name, str(path))]
+        assert main(["replay", str(run_dir), *argv]) == EXIT_USAGE
+        printed = capsys.readouterr()
+        assert printed.out == ""  # nothing ran
+        assert printed.err.startswith(f"dffd replay: {option} {bad}")
+        assert expected in printed.err
+        assert not any(path.exists() for path in good.values())  # nothing written
 
 
 def test_replay_checks_its_inputs_before_loading_the_kernels(tmp_path: Path) -> None:
