@@ -46,5 +46,7 @@ system-deps:
 	    mosquitto mosquitto-clients systemd openssl chromium chromium-driver; \
 	fi
 
+# build/ and *.egg-info/ too: setuptools reuses a stale build/lib, so a module moved or deleted
+# since the last build would still end up in the next wheel.
 clean:
-	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache build *.egg-info
