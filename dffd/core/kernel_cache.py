@@ -26,6 +26,7 @@ from pathlib import Path
 
 __all__ = [
     "COMPILED_MODULES",
+    "CORE_DIR",
     "KERNEL_SOURCES",
     "STAMP_FILE",
     "kernel_cache_dir",
